@@ -1,0 +1,56 @@
+# The two commands: `make serve` and `make test`. Each sets up whatever is missing, idempotently:
+# a venv with the pinned torch (tch 0.26 links PyTorch 2.13.0's libtorch), then the build.
+# The venv and cargo's target dir live in a cache outside the clone, so later runs and CI reuse them.
+
+SHELL := /bin/bash
+TORCH_VERSION := 2.13.0
+UDAPOSE_CACHE ?= $(HOME)/.cache/udapose
+VENV ?= $(UDAPOSE_CACHE)/venv
+PYTHON ?= python3
+
+export CARGO_TARGET_DIR ?= $(UDAPOSE_CACHE)/target
+export LIBTORCH_USE_PYTORCH := 1
+export PATH := $(VENV)/bin:$(PATH)
+
+# One profile for everything (build, tests, serve) so the workspace compiles once.
+CARGO_FLAGS := --release --locked
+BIN := $(CARGO_TARGET_DIR)/release
+TORCH_STAMP := $(VENV)/.torch-$(TORCH_VERSION)
+
+SERVE_ARGS ?= --models models
+
+.PHONY: serve test build venv bench doctor fmt lint clean-cache
+
+serve: build
+	$(BIN)/udapose-server $(SERVE_ARGS)
+
+test: build
+	cargo test $(CARGO_FLAGS) --workspace
+
+build: venv
+	cargo build $(CARGO_FLAGS) --workspace
+
+venv: $(TORCH_STAMP)
+
+$(TORCH_STAMP):
+	@echo "setting up $(VENV) with torch==$(TORCH_VERSION) (first time: ~2-3 min, ~5 GB)"
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "Python >= 3.10 is required")'
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check torch==$(TORCH_VERSION)
+	touch $@
+
+bench: venv
+	cargo bench --locked -p udapose-engine
+
+doctor: build
+	$(BIN)/udapose-lab doctor
+
+fmt:
+	cargo fmt --all
+
+lint: venv
+	cargo fmt --all -- --check
+	cargo clippy $(CARGO_FLAGS) --workspace --all-targets -- -D warnings
+
+clean-cache:
+	rm -rf $(UDAPOSE_CACHE)

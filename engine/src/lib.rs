@@ -1,0 +1,15 @@
+//! udapose-engine: the 3DUDA method (see docs/METHOD.md). It knows no I/O protocol: callers
+//! hand it images, meshes and poses, and get poses and models back.
+
+pub mod camera;
+pub mod error;
+pub mod mesh;
+pub mod metrics;
+pub mod raster;
+pub mod runtime;
+
+pub use camera::{Camera, Pose, View};
+pub use error::{EngineError, Result};
+pub use mesh::{Cuboid, Mesh};
+pub use metrics::{PoseMetrics, pose_error, rotation_error};
+pub use raster::{Fragments, Rasterizer};

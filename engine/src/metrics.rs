@@ -1,0 +1,57 @@
+//! Pose error and the benchmark metrics (METHOD.md §2).
+
+use std::f64::consts::PI;
+
+use nalgebra::Matrix3;
+use serde::{Deserialize, Serialize};
+
+use crate::camera::rotation;
+use crate::error::{EngineError, Result};
+
+/// Geodesic angle between two rotations, `‖logm(R_predᵀ R_gt)‖_F / √2`, in radians.
+///
+/// Computed as `atan2(‖w‖, (tr Q − 1)/2)` with `w` the axial vector of `Q = R_predᵀ R_gt`: unlike
+/// `acos` of the trace, this keeps full precision near 0 and near π. Non-finite input gives π.
+pub fn rotation_error(pred: &Matrix3<f64>, gt: &Matrix3<f64>) -> f64 {
+    let q = pred.transpose() * gt;
+    let w = [(q[(2, 1)] - q[(1, 2)]) / 2.0, (q[(0, 2)] - q[(2, 0)]) / 2.0, (q[(1, 0)] - q[(0, 1)]) / 2.0];
+    let sin = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    let cos = (q.trace() - 1.0) / 2.0;
+    let angle = sin.atan2(cos);
+    if angle.is_finite() { angle } else { PI }
+}
+
+/// Error between poses given as `[azimuth, elevation, theta]`; a failed estimate (`None` or
+/// any NaN) counts as π.
+pub fn pose_error(pred: Option<[f64; 3]>, gt: [f64; 3]) -> f64 {
+    match pred {
+        Some([a, e, t]) if a.is_finite() && e.is_finite() && t.is_finite() => {
+            rotation_error(&rotation(a, e, t), &rotation(gt[0], gt[1], gt[2]))
+        }
+        _ => PI,
+    }
+}
+
+/// Acc@π/6, Acc@π/18 and MedErr (degrees), pooled over the images of a split.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseMetrics {
+    pub acc_pi_6: f64,
+    pub acc_pi_18: f64,
+    pub med_err_deg: f64,
+    pub n: usize,
+}
+
+impl PoseMetrics {
+    /// Metrics from per-image errors in radians; a NaN error counts as π.
+    pub fn from_errors(errors: &[f64]) -> Result<Self> {
+        if errors.is_empty() {
+            return Err(EngineError::InvalidInput("metrics of an empty split".into()));
+        }
+        let mut e: Vec<f64> = errors.iter().map(|&x| if x.is_nan() { PI } else { x }).collect();
+        e.sort_by(f64::total_cmp);
+        let n = e.len();
+        let frac = |t: f64| e.iter().filter(|&&x| x < t).count() as f64 / n as f64;
+        let median = if n % 2 == 1 { e[n / 2] } else { (e[n / 2 - 1] + e[n / 2]) / 2.0 };
+        Ok(PoseMetrics { acc_pi_6: frac(PI / 6.0), acc_pi_18: frac(PI / 18.0), med_err_deg: median.to_degrees(), n })
+    }
+}

@@ -1,0 +1,79 @@
+//! Geodesic pose error and the benchmark metrics.
+
+use std::f64::consts::PI;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::Value;
+use udapose_engine::camera::rotation;
+use udapose_engine::{PoseMetrics, pose_error, rotation_error};
+
+fn angles(v: &Value) -> Option<[f64; 3]> {
+    let a = v.as_array()?;
+    Some([a[0].as_f64()?, a[1].as_f64()?, a[2].as_f64()?])
+}
+
+#[test]
+fn geodesic_matches_reference_vectors_including_edges() {
+    let v: Value = serde_json::from_str(include_str!("data/camera-vectors.json")).unwrap();
+    for key in ["geodesic", "geodesic_edge"] {
+        for c in v[key].as_array().unwrap() {
+            let gt = angles(&c["gt"]).unwrap();
+            let got = pose_error(angles(&c["pred"]), gt);
+            let want = c["error_rad"].as_f64().unwrap();
+            assert!((got - want).abs() < 1e-9, "{key}: got {got}, want {want} ({c})");
+        }
+    }
+}
+
+/// Rodrigues' rotation about a unit axis.
+fn axis_angle(axis: [f64; 3], angle: f64) -> nalgebra::Matrix3<f64> {
+    let k = nalgebra::Vector3::from(axis).normalize();
+    nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(k), angle).into_inner()
+}
+
+#[test]
+fn identical_poses_have_zero_error_and_known_rotations_their_angle() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..500 {
+        let [a, e, t] = [rng.random_range(-PI..PI), rng.random_range(-1.5..1.5), rng.random_range(-PI..PI)];
+        let r = rotation(a, e, t);
+        assert_eq!(pose_error(Some([a, e, t]), [a, e, t]), 0.0);
+        let angle = rng.random_range(0.0..PI);
+        let axis = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+        let other = axis_angle(axis, angle) * r;
+        let d = rotation_error(&other, &r);
+        assert!((d - angle).abs() < 1e-9, "got {d}, want {angle}");
+        assert_eq!(d, rotation_error(&r, &other), "symmetric");
+    }
+}
+
+#[test]
+fn no_nan_at_zero_and_pi() {
+    let r = rotation(0.3, 0.2, 0.1);
+    for angle in [0.0, 1e-12, PI - 1e-12, PI] {
+        let d = rotation_error(&(axis_angle([0.3, -0.5, 0.8], angle) * r), &r);
+        assert!(d.is_finite() && (d - angle).abs() < 1e-9, "angle {angle}: {d}");
+    }
+    // Azimuth moved by π about the vertical axis: exactly π.
+    let d = pose_error(Some([0.4 + PI, 0.0, 0.0]), [0.4, 0.0, 0.0]);
+    assert!((d - PI).abs() < 1e-12);
+    assert_eq!(pose_error(None, [0.0; 3]), PI);
+    assert_eq!(pose_error(Some([f64::NAN, 0.0, 0.0]), [0.0; 3]), PI);
+}
+
+#[test]
+fn metrics_on_hand_computed_cases() {
+    let deg = |d: f64| d.to_radians();
+    // 5°, 15°, 25°, 40°, NaN (counts as 180°): Acc@π/18 = 1/5, Acc@π/6 = 3/5, median 25°.
+    let m = PoseMetrics::from_errors(&[deg(25.0), deg(5.0), f64::NAN, deg(40.0), deg(15.0)]).unwrap();
+    assert_eq!(m.n, 5);
+    assert!((m.acc_pi_18 - 0.2).abs() < 1e-15);
+    assert!((m.acc_pi_6 - 0.6).abs() < 1e-15);
+    assert!((m.med_err_deg - 25.0).abs() < 1e-12);
+    // Even count: median is the mean of the middle two; thresholds are strict.
+    let m = PoseMetrics::from_errors(&[deg(10.0), deg(29.0), PI / 6.0, deg(1.0)]).unwrap();
+    assert!((m.med_err_deg - 19.5).abs() < 1e-12);
+    assert!((m.acc_pi_6 - 0.75).abs() < 1e-15, "π/6 itself is not below π/6");
+    assert!(PoseMetrics::from_errors(&[]).is_err());
+}
