@@ -16,16 +16,23 @@ export PATH := $(VENV)/bin:$(PATH)
 CARGO_FLAGS := --release --locked
 BIN := $(CARGO_TARGET_DIR)/release
 TORCH_STAMP := $(VENV)/.torch-$(TORCH_VERSION)
+# The corruption reference; its frost textures are read at synth time (never committed).
+CORRUPTIONS_VERSION := 1.1.5
+CORRUPTIONS_STAMP := $(VENV)/.imagecorruptions-$(CORRUPTIONS_VERSION)
+TORCS_DIR ?= /usr/share/games/torcs
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# The quick SynCar-OOD dataset every run's tests share (regenerated each run: < 3 min).
+QUICK_DATA := $(UDAPOSE_CACHE)/run/syncar-quick
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv bench doctor fmt lint clean-cache
+.PHONY: serve test build venv assets quick-data bench doctor fmt lint clean-cache
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build
-	cargo test $(CARGO_FLAGS) --workspace
+test: build assets $(CORRUPTIONS_STAMP) quick-data
+	UDAPOSE_QUICK_DATA=$(QUICK_DATA) cargo test $(CARGO_FLAGS) --workspace
 
 build: venv
 	cargo build $(CARGO_FLAGS) --workspace
@@ -38,6 +45,21 @@ $(TORCH_STAMP):
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check torch==$(TORCH_VERSION)
 	touch $@
+
+$(CORRUPTIONS_STAMP): $(TORCH_STAMP)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check imagecorruptions-imaug==$(CORRUPTIONS_VERSION)
+	touch $@
+
+# TORCS cars and track photographs, and the AC3D → OBJ converter (BENCHMARK.md §1).
+assets:
+	@if [ ! -d $(TORCS_DIR)/cars ] || ! command -v assimp >/dev/null; then \
+		echo "installing Debian packages torcs-data and assimp-utils"; \
+		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends torcs-data assimp-utils; \
+	fi
+
+quick-data: build assets $(CORRUPTIONS_STAMP)
+	rm -rf $(QUICK_DATA)
+	$(BIN)/udapose-lab synth --profile quick --seed 0 --torcs $(TORCS_DIR) --out $(QUICK_DATA)
 
 bench: venv
 	cargo bench --locked -p udapose-engine

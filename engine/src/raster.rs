@@ -17,7 +17,7 @@ pub const NO_FACE: u32 = u32::MAX;
 pub const VISIBILITY_TOLERANCE: f64 = 1e-3;
 /// Images with fewer pixels are rasterised on the calling thread: below this, splitting into
 /// row bands costs more than it saves (measured by `cargo bench -p udapose-engine`).
-pub const PARALLEL_MIN_PIXELS: usize = 32 * 1024;
+pub const PARALLEL_MIN_PIXELS: usize = 64 * 1024;
 
 /// The rasteriser's result, borrowed from its buffers (row-major, `width × height`).
 #[derive(Debug)]

@@ -1,0 +1,11 @@
+//! udapose-lab as a library: the parts of the offline tools that tests (and the service's
+//! tests) reuse.
+
+pub mod assets;
+pub mod atomic;
+pub mod corruptions;
+pub mod datasets;
+pub mod npz;
+pub mod preview;
+pub mod render;
+pub mod synth;
