@@ -2,7 +2,7 @@
 //! jpeg_compression, ported operation by operation from `imagecorruptions` 1.1.5.
 //!
 //! The reference ends every corruption with `np.uint8(np.clip(x, 0, 1) * 255)`, which truncates;
-//! `to_u8` does the same so that the deterministic ones agree pixel for pixel.
+//! `unit_to_u8` does the same, so the deterministic ones agree pixel for pixel.
 
 use image::{Rgb, RgbImage};
 use rand::Rng;
@@ -27,7 +27,7 @@ fn map_pixels(image: &RgbImage, f: impl Fn([f64; 3]) -> [f64; 3]) -> RgbImage {
 }
 
 /// skimage.color.rgb2hsv for one pixel, with its tie order (blue beats green beats red).
-pub(super) fn rgb2hsv([r, g, b]: [f64; 3]) -> [f64; 3] {
+fn rgb2hsv([r, g, b]: [f64; 3]) -> [f64; 3] {
     let v = r.max(g).max(b);
     let delta = v - r.min(g).min(b);
     if delta == 0.0 {
@@ -46,7 +46,7 @@ pub(super) fn rgb2hsv([r, g, b]: [f64; 3]) -> [f64; 3] {
 }
 
 /// skimage.color.hsv2rgb for one pixel.
-pub(super) fn hsv2rgb([h, s, v]: [f64; 3]) -> [f64; 3] {
+fn hsv2rgb([h, s, v]: [f64; 3]) -> [f64; 3] {
     let hi = (h * 6.0).floor();
     let f = h * 6.0 - hi;
     let p = v * (1.0 - s);
@@ -124,6 +124,8 @@ pub fn elastic_transform(image: &RgbImage, severity: u8, rng: &mut ChaCha8Rng) -
     let warped = planes.map(|p| {
         Plane::from_fn(w, h, |x, y| {
             let (sx, sy) = (x as f64 + dx.get(x, y), y as f64 + dy.get(x, y));
+            // Reading the taps through the reflect border equals SciPy's folding of the coordinate
+            // for mode='reflect' (the half-sample mirror maps the sample grid onto itself).
             // SciPy writes into a float32 output; the clip and ×255 happen in float32 too.
             f64::from((sample_bilinear(&p, sx, sy, Border::Reflect) as f32).clamp(0.0, 1.0) * 255.0)
         })
@@ -131,10 +133,12 @@ pub fn elastic_transform(image: &RgbImage, severity: u8, rng: &mut ChaCha8Rng) -
     from_planes(&warped, |v| v as u8)
 }
 
+/// Fractional bits of Pillow's 8-bit resampling weights (`PRECISION_BITS`).
+const PRECISION: u32 = 22;
+
 /// Pillow's `precompute_coeffs` for the BOX filter, in its 22-bit fixed point: for each output
 /// index, the first input index and the weights of the inputs it averages.
 fn box_coeffs(in_size: usize, out_size: usize) -> Vec<(usize, Vec<i64>)> {
-    const PRECISION: i32 = 22;
     let scale = in_size as f64 / out_size as f64;
     let filter_scale = scale.max(1.0);
     let support = 0.5 * filter_scale;
@@ -154,7 +158,7 @@ fn box_coeffs(in_size: usize, out_size: usize) -> Vec<(usize, Vec<i64>)> {
                 .iter()
                 .map(|&k| {
                     let k = if total != 0.0 { k / total } else { k };
-                    (0.5 + k * f64::from(1 << PRECISION)) as i64
+                    (0.5 + k * f64::from(1u32 << PRECISION)) as i64
                 })
                 .collect();
             (xmin, fixed)
@@ -164,7 +168,7 @@ fn box_coeffs(in_size: usize, out_size: usize) -> Vec<(usize, Vec<i64>)> {
 
 /// Pillow's 8-bit fixed-point accumulation: round, shift, clip.
 fn fixed_to_u8(acc: i64) -> u8 {
-    ((acc + (1 << 21)) >> 22).clamp(0, 255) as u8
+    ((acc + (1 << (PRECISION - 1))) >> PRECISION).clamp(0, 255) as u8
 }
 
 /// `Image.resize(size, Image.BOX)`: a horizontal pass then a vertical one, each rounding to u8.

@@ -47,6 +47,9 @@ pub enum CorruptionError {
     Severity(u8),
     #[error("image {0}x{1} is too small to corrupt")]
     TooSmall(u32, u32),
+    /// A file the corruption needs at run time is not installed (frost's textures).
+    #[error("missing asset: {0}")]
+    MissingAsset(String),
 }
 
 impl Corruption {
@@ -118,7 +121,7 @@ impl Corruption {
             Corruption::ZoomBlur => blur::zoom_blur(image, s),
             Corruption::GaussianBlur => blur::gaussian_blur(image, s),
             Corruption::Snow => weather::snow(image, s, rng),
-            Corruption::Frost => weather::frost(image, s, rng),
+            Corruption::Frost => weather::frost(image, s, rng)?,
             Corruption::Fog => weather::fog(image, s, rng),
             Corruption::Spatter => weather::spatter(image, s, rng),
             Corruption::Brightness => digital::brightness(image, s),

@@ -9,6 +9,9 @@ use rand_chacha::ChaCha8Rng;
 use crate::assets::backgrounds::random_crop;
 
 const MAX_TRIES: usize = 2000;
+/// Rejections in a row after which a fraction already inside the band is accepted: near the
+/// top of the band no occluder is small enough to reach a target just below it.
+const STALL: usize = 50;
 
 /// Paints occluders over `image` and returns the covered fraction of `mask`, which lies in
 /// `[band.0, band.1]`.
@@ -26,13 +29,21 @@ pub fn occlude(
     let mut covered = vec![false; w * h];
     let mut hits = 0usize;
     let mut scale = 0.6;
+    let mut rejected = 0;
     for _ in 0..MAX_TRIES {
         let shape = Shape::random(bbox, scale, rng);
         let pixels: Vec<usize> = shape.pixels(w, h).filter(|&p| !covered[p]).collect();
         let new_hits = pixels.iter().filter(|&&p| mask[p] != 0).count();
         if (hits + new_hits) as f64 > band.1 * area as f64 {
             scale = (scale * 0.9).max(0.05); // too big for what is left of the band
+            rejected += 1;
+            if rejected >= STALL && hits as f64 >= band.0 * area as f64 {
+                return Ok(hits as f64 / area as f64);
+            }
             continue;
+        }
+        if new_hits > 0 {
+            rejected = 0;
         }
         paint(image, &shape, &pixels, photos, rng);
         pixels.iter().for_each(|&p| covered[p] = true);

@@ -97,11 +97,14 @@ fn ycc_planes(image: &RgbImage) -> [Plane; 3] {
 }
 
 /// h2v2_downsample: 2×2 means with the alternating 1, 2 rounding bias that libjpeg uses to avoid
-/// drifting up.
-fn downsample(p: &Plane) -> Plane {
-    let (w, h) = (p.w / 2, p.h / 2);
+/// drifting up. Below the image's `ceil(h / 2)` chroma rows libjpeg repeats the last *chroma*
+/// row (its prep controller pads the downsampled output), not the last image row; across, the
+/// image columns were already repeated before averaging.
+fn downsample(p: &Plane, image_h: usize) -> Plane {
+    let (w, h, rows) = (p.w / 2, p.h / 2, image_h.div_ceil(2));
     let mut data = Vec::with_capacity(w * h);
     for y in 0..h {
+        let y = y.min(rows - 1);
         for x in 0..w {
             let sum = p.at(2 * x, 2 * y) + p.at(2 * x + 1, 2 * y) + p.at(2 * x, 2 * y + 1) + p.at(2 * x + 1, 2 * y + 1);
             data.push((sum + 1 + (x as i64 & 1)) >> 2);
@@ -236,7 +239,7 @@ pub(super) fn round_trip(image: &RgbImage, quality: u8) -> RgbImage {
     let (luma_q, chroma_q) = (scaled_table(&LUMA_Q, quality), scaled_table(&CHROMA_Q, quality));
     code_blocks(&mut y, &luma_q);
     let [cb, cr] = [cb, cr].map(|c| {
-        let mut small = downsample(&c);
+        let mut small = downsample(&c, h);
         code_blocks(&mut small, &chroma_q);
         upsample(&small, w, h)
     });
@@ -261,8 +264,11 @@ mod tests {
     fn flat_block_survives_dct_round_trip() {
         let mut block = [37i64; 64];
         fdct(&mut block);
+        // The DC of a flat block is 8 × its value, and the islow DCT scales by 8 more.
         assert_eq!(block[0], 37 * 64);
         assert!(block[1..].iter().all(|&v| v == 0));
+        // A table of ones only removes that ×8, as the real tables do on top of quantising.
+        quantise(&mut block, &[1; 64]);
         idct(&mut block);
         assert!(block.iter().all(|&v| v == 37 + 128));
     }
