@@ -34,7 +34,7 @@ pub struct Args {
     /// Where --preview writes its sheets.
     #[arg(long, default_value = "reports/syncar-preview")]
     preview_dir: PathBuf,
-    /// Append generation times to this Markdown report.
+    /// Write the generation times to this Markdown report.
     #[arg(long)]
     report: Option<PathBuf>,
     /// TORCS data directory (Debian package torcs-data).
@@ -228,6 +228,11 @@ fn write_report(path: &Path, args: &Args, times: &[(String, f64)], total: f64, (
     );
     for (d, s) in times {
         md.push_str(&format!("| {d} | {s:.1} |\n"));
+    }
+    // Other work on the machine slows generation down; say how busy it was.
+    if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
+        let load: Vec<&str> = load.split_whitespace().take(3).collect();
+        md.push_str(&format!("\nLoad average (1, 5, 15 min) when it finished: {}.\n", load.join(", ")));
     }
     std::fs::write(path, md).with_context(|| format!("writing {}", path.display()))
 }
