@@ -19,6 +19,11 @@ TORCH_STAMP := $(VENV)/.torch-$(TORCH_VERSION)
 # The corruption reference; its frost textures are read at synth time (never committed).
 CORRUPTIONS_VERSION := 1.1.5
 CORRUPTIONS_STAMP := $(VENV)/.imagecorruptions-$(CORRUPTIONS_VERSION)
+# torchvision (its release for torch 2.13.0) and safetensors: the backbone parity test exports
+# randomly initialised torchvision ResNets (lab/scripts/backbone_parity.py); never downloads weights.
+TORCHVISION_VERSION := 0.28.0
+SAFETENSORS_VERSION := 0.8.0
+TORCHVISION_STAMP := $(VENV)/.torchvision-$(TORCHVISION_VERSION)
 TORCS_DIR ?= /usr/share/games/torcs
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # The quick SynCar-OOD dataset every run's tests share (regenerated each run: < 3 min).
@@ -31,7 +36,7 @@ SERVE_ARGS ?= --models models
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets $(CORRUPTIONS_STAMP) quick-data
+test: build assets $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data
 	UDAPOSE_QUICK_DATA=$(QUICK_DATA) cargo test $(CARGO_FLAGS) --workspace
 
 build: venv
@@ -48,6 +53,10 @@ $(TORCH_STAMP):
 
 $(CORRUPTIONS_STAMP): $(TORCH_STAMP)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check imagecorruptions-imaug==$(CORRUPTIONS_VERSION)
+	touch $@
+
+$(TORCHVISION_STAMP): $(TORCH_STAMP)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check torchvision==$(TORCHVISION_VERSION) safetensors==$(SAFETENSORS_VERSION)
 	touch $@
 
 # TORCS cars and track photographs, and the AC3D → OBJ converter (BENCHMARK.md §1).

@@ -146,3 +146,42 @@ impl View {
         [self.principal[0] + m * cx, self.principal[1] - m * cy, depth]
     }
 }
+
+/// The distance at which `vertices` seen at `angles = [a, e, θ]` fill exactly `fill` of the
+/// image in its limiting dimension, measured symmetrically about the principal point:
+/// `max_v max(2|col_v − px|/W, 2|row_v − py|/H) = fill` (BENCHMARK.md §2, METHOD.md §6).
+///
+/// Closed form, no search: the camera looks at the origin, so with `(x, y, z) = R(a, e, θ)·X` a
+/// vertex lies at depth `d − z` and `|col − px| = M|x|/(d − z)`. Its condition
+/// `2M|x|/(W(d − z)) ≤ fill` reads `d ≥ z + 2M|x|/(W·fill)` (likewise for rows), and the fit
+/// distance is the largest of these bounds over all vertices. This is the root that a bisection
+/// on log-distance converges to, to rounding (tested), at the cost of one pass over the vertices.
+pub fn fit_distance(vertices: &[[f64; 3]], angles: [f64; 3], camera: &Camera, fill: f64) -> Result<f64> {
+    if vertices.is_empty() {
+        return Err(EngineError::InvalidMesh("fit distance of no vertices".into()));
+    }
+    if !(fill.is_finite() && fill > 0.0) {
+        return Err(EngineError::InvalidInput(format!("fill must be finite and > 0, got {fill}")));
+    }
+    Pose::new(angles[0], angles[1], angles[2], 1.0).validate()?;
+    if vertices.iter().flatten().any(|c| !c.is_finite()) {
+        return Err(EngineError::InvalidMesh("fit distance of non-finite vertices".into()));
+    }
+    let r = rotation(angles[0], angles[1], angles[2]);
+    let kx = 2.0 * camera.viewport / (camera.width as f64 * fill);
+    let ky = 2.0 * camera.viewport / (camera.height as f64 * fill);
+    let (mut distance, mut farthest) = (f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for v in vertices {
+        let p = r * Vector3::from(*v);
+        distance = distance.max(p.z + kx * p.x.abs()).max(p.z + ky * p.y.abs());
+        farthest = farthest.max(p.z);
+    }
+    // Every vertex must lie in front of the camera; `distance == farthest` means the limiting
+    // vertex sits on the optical axis at depth 0, where the extent is undefined.
+    if !(distance.is_finite() && distance > 0.0 && distance > farthest) {
+        return Err(EngineError::InvalidInput(format!(
+            "no distance gives fill {fill}: the vertices project onto the principal point"
+        )));
+    }
+    Ok(distance)
+}

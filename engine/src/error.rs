@@ -18,6 +18,36 @@ pub enum EngineError {
     Io(String),
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    #[error("checkpoint: {0}")]
+    Checkpoint(#[from] CheckpointError),
+}
+
+/// Why a weights file could not be loaded (e.g. `Backbone::load_torchvision`). Nothing is
+/// written into the model when any of these is returned.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum CheckpointError {
+    #[error("{path}: no such file")]
+    NotFound { path: String },
+    #[error("{path}: not a readable safetensors file: {reason}")]
+    Format { path: String, reason: String },
+    #[error("{path}: missing {} key(s): {}", keys.len(), key_list(keys))]
+    MissingKeys { path: String, keys: Vec<String> },
+    #[error("{path}: unexpected {} key(s) (a file for another architecture?): {}", keys.len(), key_list(keys))]
+    UnexpectedKeys { path: String, keys: Vec<String> },
+    #[error("{path}: {key} has shape {found:?}, expected {expected:?}")]
+    Shape { path: String, key: String, expected: Vec<i64>, found: Vec<i64> },
+    #[error("{path}: {key} has dtype {found}, expected a floating-point tensor")]
+    Dtype { path: String, key: String, found: String },
+}
+
+/// The first few keys of a sorted list, for error messages.
+fn key_list(keys: &[String]) -> String {
+    const SHOWN: usize = 6;
+    let mut s = keys.iter().take(SHOWN).cloned().collect::<Vec<_>>().join(", ");
+    if keys.len() > SHOWN {
+        s.push_str(&format!(", ... and {} more", keys.len() - SHOWN));
+    }
+    s
 }
 
 impl From<std::io::Error> for EngineError {

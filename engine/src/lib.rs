@@ -1,12 +1,16 @@
 //! udapose-engine: the 3DUDA method (see docs/METHOD.md). It knows no I/O protocol: callers
 //! hand it images, meshes and poses, and get poses and models back.
 
+pub mod backbone;
 pub mod camera;
+pub mod checkpoint;
 pub mod error;
 pub mod mesh;
 pub mod metrics;
 pub mod raster;
 pub mod runtime;
+pub mod solver;
+pub mod train;
 
 pub use camera::{Camera, Pose, View};
 pub use error::{EngineError, Result};

@@ -5,6 +5,7 @@ pub mod assets;
 pub mod atomic;
 pub mod corruptions;
 pub mod datasets;
+pub mod loader;
 pub mod npz;
 pub mod preview;
 pub mod render;

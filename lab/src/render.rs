@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use image::RgbImage;
-use udapose_engine::{Camera, Mesh, Pose, Rasterizer, View, raster::NO_FACE};
+use udapose_engine::{Camera, Mesh, Pose, Rasterizer, raster::NO_FACE};
 
 use crate::assets::mesh::{Texture, TexturedMesh};
 
@@ -122,25 +122,4 @@ fn shade(model: &Model, textures: &[Texture], f: usize, bary: [f32; 3], eye: [f6
     let lambert = (0..3).map(|k| sign * n[k] * light.direction[k]).sum::<f64>().max(0.0) as f32;
     let intensity = light.ambient + light.diffuse * lambert;
     texel.map(|c| (c * intensity).min(1.0))
-}
-
-/// The distance at which the mesh's projected vertices reach exactly `fill` of the crop in its
-/// limiting dimension, measured symmetrically about the centre (BENCHMARK.md §2).
-pub fn fit_distance(mesh: &Mesh, angles: [f64; 3], height: usize, width: usize, fill: f64) -> Result<f64> {
-    let camera = Camera::for_crop(height, width)?;
-    let extent = |d: f64| -> Result<f64> {
-        let view = View::new(&camera, &Pose::new(angles[0], angles[1], angles[2], d))?;
-        Ok(mesh.vertices().iter().fold(0.0f64, |m, &v| {
-            let [col, row, _] = view.project(v);
-            m.max(2.0 * (col - camera.principal[0]).abs() / width as f64)
-                .max(2.0 * (row - camera.principal[1]).abs() / height as f64)
-        }))
-    };
-    // Extent shrinks as the camera backs away; bisect on log-distance.
-    let (mut lo, mut hi) = (0.3f64.ln(), 1000f64.ln());
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if extent(mid.exp())? > fill { lo = mid } else { hi = mid }
-    }
-    Ok((0.5 * (lo + hi)).exp())
 }

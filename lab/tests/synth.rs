@@ -87,7 +87,13 @@ fn annotations_lie_in_their_ranges() {
                 assert!((0.80..0.95).contains(&a.fill), "{at}: fill {}", a.fill);
                 assert!(p.distance > 1.5 && p.distance < 25.0, "{at}: distance {}", p.distance);
                 assert_eq!((p.principal, p.viewport, p.focal, p.height, p.width), ([80.0, 32.0], 750.0, 1.0, 64, 160));
-                let cars: Vec<&str> = if d.name == "shape" { SHAPE_CARS.to_vec() } else if any { [SOURCE_CARS.as_slice(), &SHAPE_CARS].concat() } else { SOURCE_CARS.to_vec() };
+                let cars: Vec<&str> = if d.name == "shape" {
+                    SHAPE_CARS.to_vec()
+                } else if any {
+                    [SOURCE_CARS.as_slice(), &SHAPE_CARS].concat()
+                } else {
+                    SOURCE_CARS.to_vec()
+                };
                 assert!(cars.contains(&a.car.as_str()), "{at}: car {}", a.car);
                 let all_cars: Vec<&str> = [SOURCE_CARS.as_slice(), &SHAPE_CARS].concat();
                 assert_eq!(all_cars[a.cad_index as usize], a.car);
@@ -120,7 +126,10 @@ fn the_same_seed_gives_identical_files() {
             for i in 0..Profile::Quick.count(split) {
                 for (x, y, ext) in [(&a.images, &b.images, "png"), (&a.annotations, &b.annotations, "npz")] {
                     let name = format!("{i:05}.{ext}");
-                    assert!(std::fs::read(x.join(&name)).unwrap() == std::fs::read(y.join(&name)).unwrap(), "{d}/{split}/{name} differs");
+                    assert!(
+                        std::fs::read(x.join(&name)).unwrap() == std::fs::read(y.join(&name)).unwrap(),
+                        "{d}/{split}/{name} differs"
+                    );
                 }
             }
         }

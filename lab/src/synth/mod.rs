@@ -15,7 +15,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::Serialize;
 use sha2::{Digest, Sha256};
-use udapose_engine::{Cuboid, Pose};
+use udapose_engine::camera::fit_distance;
+use udapose_engine::{Camera, Cuboid, Pose};
 
 pub use domains::{Domain, Nuisance, all_domains};
 
@@ -24,7 +25,7 @@ use crate::assets::car::Car;
 use crate::assets::{Assets, SHAPE_CARS, SOURCE_CARS};
 use crate::datasets::syncar::Annotation;
 use crate::datasets::{CropPose, Mask};
-use crate::render::{Layer, Light, Model, Renderer, fit_distance};
+use crate::render::{Layer, Light, Model, Renderer};
 
 /// Supersampling factor per axis: 9 samples per pixel.
 pub const SUPERSAMPLE: usize = 3;
@@ -128,7 +129,7 @@ pub fn render_sample(
     let model = &world.cars[cad_index].1;
     let angles = sample_angles(rng, has(Nuisance::Pose));
     let fill = rng.random_range(0.80..0.95);
-    let distance = fit_distance(&model.mesh, angles, height, width, fill)?;
+    let distance = fit_distance(model.mesh.vertices(), angles, &Camera::for_crop(height, width)?, fill)?;
     let pose = Pose::new(angles[0], angles[1], angles[2], distance);
     let light = random_light(rng);
 

@@ -1,0 +1,136 @@
+//! Batches of labelled SynCar-OOD crops, decoded on a background thread so that loading
+//! overlaps the training step that consumes them.
+
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
+
+use anyhow::{Context, Result, bail};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use udapose_engine::Pose;
+
+use crate::datasets::syncar::SyncarSplit;
+
+/// One batch: images as RGB `f32` in [0, 1], N×3×H×W (channel-major, as a network takes them).
+pub struct Batch {
+    pub height: usize,
+    pub width: usize,
+    pub images: Vec<f32>,
+    pub poses: Vec<Pose>,
+    pub names: Vec<String>,
+}
+
+impl Batch {
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+}
+
+/// Decodes one sample: its image as planar RGB in [0, 1] and its ground-truth pose.
+pub fn load_sample(split: &SyncarSplit, index: usize) -> Result<(Vec<f32>, Pose, usize, usize, String)> {
+    let sample = split.load(index)?;
+    let path = &sample.entry.image_path;
+    let img = image::open(path).with_context(|| format!("decoding {}", path.display()))?.to_rgb8();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let pose = sample.annotation.pose;
+    if (pose.height, pose.width) != (h, w) {
+        bail!("{}: image is {w}x{h}, annotation says {}x{}", path.display(), pose.width, pose.height);
+    }
+    let mut planes = vec![0.0f32; 3 * h * w];
+    for (i, p) in img.pixels().enumerate() {
+        for c in 0..3 {
+            planes[c * h * w + i] = p.0[c] as f32 / 255.0;
+        }
+    }
+    Ok((planes, pose.pose(), h, w, sample.entry.name))
+}
+
+/// Reads `batch_size` samples at a time in a seeded shuffled order, one epoch per call of
+/// [`Loader::epoch`], `prefetch` batches ahead on its own thread.
+pub struct Loader {
+    split: SyncarSplit,
+    batch_size: usize,
+    prefetch: usize,
+    rng: ChaCha8Rng,
+}
+
+/// The batches of one epoch, arriving from the loading thread.
+pub struct Epoch {
+    batches: Receiver<Result<Batch>>,
+    worker: Option<JoinHandle<()>>,
+}
+
+impl Iterator for Epoch {
+    type Item = Result<Batch>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let next = self.batches.recv().ok();
+        if next.is_none()
+            && let Some(worker) = self.worker.take()
+        {
+            let _ = worker.join();
+        }
+        next
+    }
+}
+
+impl Loader {
+    pub fn new(split: SyncarSplit, batch_size: usize, prefetch: usize, seed: u64) -> Result<Self> {
+        if split.is_empty() {
+            bail!("split {} is empty", split.paths().list.display());
+        }
+        if batch_size == 0 {
+            bail!("batch size must be at least 1");
+        }
+        Ok(Loader { split, batch_size, prefetch: prefetch.max(1), rng: ChaCha8Rng::seed_from_u64(seed) })
+    }
+
+    pub fn len(&self) -> usize {
+        self.split.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.split.is_empty()
+    }
+
+    /// Starts the next epoch: a new shuffled order; the last batch may be short.
+    pub fn epoch(&mut self) -> Epoch {
+        let mut order: Vec<usize> = (0..self.split.len()).collect();
+        order.shuffle(&mut self.rng);
+        let (tx, rx) = sync_channel(self.prefetch);
+        let (split, batch_size) = (self.split.clone(), self.batch_size);
+        let worker = std::thread::spawn(move || produce(&split, &order, batch_size, &tx));
+        Epoch { batches: rx, worker: Some(worker) }
+    }
+}
+
+/// Decodes batches in order (samples of a batch in parallel) until done or the receiver is gone.
+fn produce(split: &SyncarSplit, order: &[usize], batch_size: usize, tx: &SyncSender<Result<Batch>>) {
+    for chunk in order.chunks(batch_size) {
+        let batch = chunk.par_iter().map(|&i| load_sample(split, i)).collect::<Result<Vec<_>>>().and_then(assemble);
+        let failed = batch.is_err();
+        if tx.send(batch).is_err() || failed {
+            return;
+        }
+    }
+}
+
+fn assemble(samples: Vec<(Vec<f32>, Pose, usize, usize, String)>) -> Result<Batch> {
+    let (height, width) = (samples[0].2, samples[0].3);
+    if samples.iter().any(|s| (s.2, s.3) != (height, width)) {
+        bail!("a batch mixes image sizes");
+    }
+    let mut batch = Batch { height, width, images: Vec::new(), poses: Vec::new(), names: Vec::new() };
+    for (pixels, pose, _, _, name) in samples {
+        batch.images.extend(pixels);
+        batch.poses.push(pose);
+        batch.names.push(name);
+    }
+    Ok(batch)
+}
