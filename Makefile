@@ -28,16 +28,18 @@ TORCS_DIR ?= /usr/share/games/torcs
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # The quick SynCar-OOD dataset every run's tests share (regenerated each run: < 3 min).
 QUICK_DATA := $(UDAPOSE_CACHE)/run/syncar-quick
+# One quick source model per run, trained on it, for the tests that need a model.
+QUICK_MODEL := $(UDAPOSE_CACHE)/run/quick-model
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv assets quick-data bench doctor fmt lint clean-cache
+.PHONY: serve test build venv assets quick-data quick-model bench doctor fmt lint clean-cache
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data
-	UDAPOSE_QUICK_DATA=$(QUICK_DATA) cargo test $(CARGO_FLAGS) --workspace
+test: build assets $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data quick-model
+	UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) cargo test $(CARGO_FLAGS) --workspace
 
 build: venv
 	cargo build $(CARGO_FLAGS) --workspace
@@ -69,6 +71,10 @@ assets:
 quick-data: build assets $(CORRUPTIONS_STAMP)
 	rm -rf $(QUICK_DATA)
 	$(BIN)/udapose-lab synth --profile quick --seed 0 --torcs $(TORCS_DIR) --out $(QUICK_DATA)
+
+quick-model: quick-data
+	rm -rf $(QUICK_MODEL) $(QUICK_MODEL).work
+	$(BIN)/udapose-lab train --data $(QUICK_DATA) --out $(QUICK_MODEL) --epochs 2
 
 bench: venv
 	cargo bench --locked -p udapose-engine

@@ -5,6 +5,7 @@ pub mod backbone;
 pub mod camera;
 pub mod checkpoint;
 pub mod error;
+pub mod estimator;
 pub mod mesh;
 pub mod metrics;
 pub mod raster;

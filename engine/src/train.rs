@@ -225,3 +225,75 @@ fn neighbour_mask(vis: &VisibleVertices, radius: f64) -> Vec<bool> {
         })
         .collect()
 }
+
+/// Per-vertex statistics of the source features at ground-truth poses, stored with the model
+/// for adaptation (METHOD.md §7): the `quantile` of each vertex's cosines to its feature (τ_r)
+/// and the mean resultant length of its features (R̄_r).
+pub struct VertexStatistics {
+    cosines: Vec<Vec<f32>>,
+    sums: Tensor,
+    counts: Vec<usize>,
+    raster: Rasterizer,
+}
+
+/// τ for a vertex never seen visible (METHOD.md §7's fallback, the paper's 0.8 as a cosine).
+pub const FALLBACK_TAU: f64 = 0.8;
+
+impl VertexStatistics {
+    pub fn new(vertices: usize, dim: i64, device: Device) -> Self {
+        VertexStatistics {
+            cosines: vec![Vec::new(); vertices],
+            sums: Tensor::zeros([vertices as i64, dim], (Kind::Float, device)),
+            counts: vec![0; vertices],
+            raster: Rasterizer::new(),
+        }
+    }
+
+    /// Adds a batch of unit-norm features `N×D×h×w` at their ground-truth poses.
+    pub fn add(&mut self, training: &SourceTraining, features: &Tensor, poses: &[Pose]) -> Result<()> {
+        let [n, d, h, w] = <[i64; 4]>::try_from(features.size())
+            .map_err(|_| EngineError::InvalidInput(format!("features must be N×D×h×w, got {:?}", features.size())))?;
+        let flat = features.detach().permute([0, 2, 3, 1]).reshape([n * h * w, d]);
+        let (mut rows, mut targets) = (Vec::new(), Vec::new());
+        for (b, pose) in poses.iter().enumerate() {
+            let vis = visible_vertices(&mut self.raster, &training.mesh, &training.crop, training.config.stride, pose)?;
+            rows.extend(vis.cells.iter().map(|c| b as i64 * h * w + c));
+            targets.extend(vis.vertices);
+        }
+        if rows.is_empty() {
+            return Ok(());
+        }
+        let device = features.device();
+        let f = flat.index_select(0, &Tensor::from_slice(&rows).to_device(device));
+        let t = Tensor::from_slice(&targets).to_device(device);
+        let cos =
+            (&f * training.vertex_features.index_select(0, &t)).sum_dim_intlist([1i64].as_slice(), false, Kind::Float);
+        let cos =
+            Vec::<f32>::try_from(&cos.to_device(Device::Cpu)).map_err(|e| EngineError::InvalidInput(e.to_string()))?;
+        for (&k, c) in targets.iter().zip(cos) {
+            self.cosines[k as usize].push(c);
+            self.counts[k as usize] += 1;
+        }
+        self.sums = self.sums.index_add(0, &t, &f);
+        Ok(())
+    }
+
+    /// `(τ, R̄)`, each of length R.
+    pub fn finish(mut self, quantile: f64) -> (Tensor, Tensor) {
+        let tau: Vec<f32> = self
+            .cosines
+            .iter_mut()
+            .map(|c| {
+                if c.is_empty() {
+                    return FALLBACK_TAU as f32;
+                }
+                c.sort_by(f32::total_cmp);
+                c[((c.len() - 1) as f64 * quantile).round() as usize]
+            })
+            .collect();
+        let counts: Vec<f32> = self.counts.iter().map(|&c| c.max(1) as f32).collect();
+        let device = self.sums.device();
+        let r_bar = self.sums.norm_scalaropt_dim(2, [1], false) / Tensor::from_slice(&counts).to_device(device);
+        (Tensor::from_slice(&tau).to_device(device), r_bar)
+    }
+}

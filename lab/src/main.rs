@@ -2,7 +2,9 @@
 
 mod corrupt_cmd;
 mod doctor;
+mod eval_cmd;
 mod synth_cmd;
+mod train_cmd;
 
 use clap::{Parser, Subcommand};
 
@@ -10,7 +12,7 @@ use clap::{Parser, Subcommand};
 #[command(
     name = "udapose-lab",
     version,
-    about = "udapose offline tools: environment checks, the SynCar-OOD benchmark, corruptions"
+    about = "udapose offline tools: environment checks, the SynCar-OOD benchmark, corruptions, source training, evaluation"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -25,6 +27,10 @@ enum Command {
     Corrupt(corrupt_cmd::Args),
     /// Render the SynCar-OOD benchmark (every domain and split), or preview sheets of it.
     Synth(synth_cmd::Args),
+    /// Train the source model (NeMo) on a SynCar-OOD dataset; resumable.
+    Train(train_cmd::Args),
+    /// Evaluate a model on every domain of a dataset: Acc@π/6, Acc@π/18, MedErr.
+    Eval(eval_cmd::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -32,5 +38,7 @@ fn main() -> anyhow::Result<()> {
         Command::Doctor(args) => doctor::run(&args),
         Command::Corrupt(args) => corrupt_cmd::run(&args),
         Command::Synth(args) => synth_cmd::run(&args),
+        Command::Train(args) => train_cmd::run(&args),
+        Command::Eval(args) => eval_cmd::run(&args),
     }
 }

@@ -1,0 +1,98 @@
+//! `udapose-lab eval`: Acc@π/6, Acc@π/18 and MedErr of a model on every domain of a dataset.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use serde_json::json;
+use tch::Tensor;
+use udapose_engine::checkpoint;
+use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::runtime::RuntimeInfo;
+use udapose_engine::solver::SolverConfig;
+use udapose_engine::{Camera, PoseMetrics, pose_error};
+use udapose_lab::datasets::syncar::SyncarSplit;
+use udapose_lab::loader::load_sample;
+use udapose_lab::synth::all_domains;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Model directory (manifest.json + weights).
+    #[arg(long)]
+    model: PathBuf,
+    /// SynCar-OOD root.
+    #[arg(long)]
+    data: PathBuf,
+    /// Report (JSON; a Markdown twin is written next to it).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value = "test")]
+    split: String,
+    /// Only these domains (default: every domain present).
+    #[arg(long, value_delimiter = ',')]
+    domains: Vec<String>,
+    /// At most this many images per domain (0: all).
+    #[arg(long, default_value_t = 0)]
+    limit: usize,
+}
+
+pub fn run(args: &Args) -> Result<()> {
+    let device = RuntimeInfo::detect().device();
+    let model = checkpoint::load(&args.model, device).with_context(|| format!("loading {}", args.model.display()))?;
+    let [h, w] = model.manifest.crop;
+    let camera = Camera::for_crop(h, w)?;
+    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
+    let config = SolverConfig::default();
+    let names: Vec<String> = if args.domains.is_empty() {
+        all_domains().into_iter().map(|d| d.name).filter(|d| args.data.join(d).join(&args.split).is_dir()).collect()
+    } else {
+        args.domains.clone()
+    };
+    if names.is_empty() {
+        bail!("no domain with a {} split under {}", args.split, args.data.display());
+    }
+    let mut domains = serde_json::Map::new();
+    let mut md = format!(
+        "# Evaluation of `{}`\n\n`udapose-lab eval --model {} --data {} --split {}` (k = {}), commit `{}`.\n\n\
+         | domain | Acc@π/6 | Acc@π/18 | MedErr (°) | n |\n|---|---:|---:|---:|---:|\n",
+        model.manifest.version,
+        args.model.display(),
+        args.data.display(),
+        args.split,
+        config.hypotheses,
+        crate::synth_cmd::git_commit()
+    );
+    for name in &names {
+        let split = SyncarSplit::open(&args.data, name, &args.split)?;
+        let n = if args.limit == 0 { split.len() } else { args.limit.min(split.len()) };
+        let mut errors = Vec::with_capacity(n);
+        for i in 0..n {
+            let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
+            if (ih, iw) != (h, w) {
+                bail!("{name}: images are {iw}x{ih}, the model's crop is {w}x{h}");
+            }
+            let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+            let features = estimator::features(&model.backbone, &image)?;
+            let estimate = estimator::estimate(&model.neural_mesh.mesh, &solver_mesh, &features[0], &camera, &config);
+            let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
+            errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
+        }
+        let m = PoseMetrics::from_errors(&errors)?;
+        eprintln!(
+            "{name}: Acc@π/6 {:.3}, Acc@π/18 {:.3}, MedErr {:.1}° (n = {})",
+            m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n
+        );
+        md.push_str(&format!("| {name} | {:.3} | {:.3} | {:.1} | {} |\n", m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n));
+        domains.insert(name.clone(), serde_json::to_value(m)?);
+    }
+    let report = json!({
+        "model": model.manifest.version,
+        "model_dir": args.model.display().to_string(),
+        "data": args.data.display().to_string(),
+        "split": args.split,
+        "commit": crate::synth_cmd::git_commit(),
+        "domains": domains,
+    });
+    udapose_lab::atomic::write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
+    udapose_lab::atomic::write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
+    Ok(())
+}

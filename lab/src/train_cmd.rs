@@ -1,0 +1,287 @@
+//! `udapose-lab train`: the source model (METHOD.md §5) from a SynCar-OOD dataset, resumable
+//! from its last epoch, with a validation curve on `source/val`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde_json::json;
+use tch::nn::OptimizerConfig;
+use tch::{Device, Kind, Tensor, nn};
+use udapose_engine::backbone::{Arch, Backbone};
+use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
+use udapose_engine::estimator::{self, SolverMesh, clutter_mean};
+use udapose_engine::mesh::TARGET_VERTICES;
+use udapose_engine::runtime::RuntimeInfo;
+use udapose_engine::solver::SolverConfig;
+use udapose_engine::train::{SourceTraining, TrainConfig, VertexStatistics};
+use udapose_engine::{Camera, Cuboid, PoseMetrics, pose_error};
+use udapose_lab::datasets::syncar::SyncarSplit;
+use udapose_lab::loader::{Batch, Loader};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// SynCar-OOD root (trains on source/train, validates on source/val).
+    #[arg(long)]
+    data: PathBuf,
+    #[arg(long, default_value = "car")]
+    category: String,
+    /// The new model directory (must not exist).
+    #[arg(long)]
+    out: PathBuf,
+    /// Backbone trunk: resnet18, resnet34 or resnet50.
+    #[arg(long, default_value = "resnet18")]
+    arch: Arch,
+    #[arg(long, default_value_t = 30)]
+    epochs: usize,
+    #[arg(long, default_value_t = 16)]
+    batch: usize,
+    /// Adam learning rate (weight decay 1e-4).
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// torchvision ResNet weights exported by lab/scripts/export_torchvision.py.
+    #[arg(long)]
+    init_backbone: Option<PathBuf>,
+    /// Where per-epoch checkpoints go (default: `<out>.work`); a run resumes from the latest.
+    #[arg(long)]
+    work: Option<PathBuf>,
+    /// Storage of the saved model's tensors: f16 (half the size) or f32.
+    #[arg(long, default_value = "f16")]
+    dtype: String,
+    /// Validation images per epoch (0: the whole val split).
+    #[arg(long, default_value_t = 0)]
+    val_images: usize,
+}
+
+/// What a run has done so far; saved with each epoch's weights.
+#[derive(serde::Serialize, serde::Deserialize, Default)]
+struct Progress {
+    epoch: usize,
+    seconds: f64,
+    curve: Vec<serde_json::Value>,
+}
+
+pub fn run(args: &Args) -> Result<()> {
+    if args.out.exists() {
+        bail!("{} already exists (model versions are immutable)", args.out.display());
+    }
+    let data: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(args.data.join("manifest.json")).context("reading the dataset's manifest.json")?,
+    )?;
+    let cuboid: Cuboid = serde_json::from_value(data["cuboid"].clone()).context("dataset manifest: cuboid")?;
+    let crop =
+        [data["crop"]["height"].as_u64().unwrap_or(0) as usize, data["crop"]["width"].as_u64().unwrap_or(0) as usize];
+    let camera = Camera::for_crop(crop[0], crop[1])?;
+    let device = RuntimeInfo::detect().device();
+    let mesh = cuboid.mesh(TARGET_VERTICES);
+
+    let mut vs = nn::VarStore::new(device);
+    let backbone = Backbone::new(vs.root(), args.arch, 128);
+    if let Some(init) = &args.init_backbone {
+        let loaded = backbone.load_torchvision(&mut vs, init)?;
+        eprintln!("initialised the trunk from {} ({} tensors)", init.display(), loaded.loaded);
+    }
+    let mut training = SourceTraining::new(TrainConfig::default(), mesh.clone(), camera, 128, device);
+    let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("{}.work", args.out.display())));
+    std::fs::create_dir_all(&work)?;
+    let mut progress = resume(&work, &mut vs, &mut training)?;
+
+    let train = SyncarSplit::open(&args.data, "source", "train")?;
+    let val = SyncarSplit::open(&args.data, "source", "val")?;
+    let mut loader = Loader::new(train.clone(), args.batch, 2, args.seed)?;
+    for _ in 0..progress.epoch {
+        drop(loader.epoch()); // replay the shuffles of the epochs already done
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ progress.epoch as u64);
+    // tch cannot save an optimiser's state: a resumed run starts Adam afresh.
+    let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&vs, args.lr)?;
+    for epoch in progress.epoch..args.epochs {
+        let started = Instant::now();
+        let bar = bar(loader.len() as u64, &format!("epoch {}/{}", epoch + 1, args.epochs));
+        let mut loss_sum = (0.0, 0usize);
+        for batch in loader.epoch() {
+            let batch = batch?;
+            let images = images_tensor(&batch, device);
+            let features = backbone.forward_t(&udapose_engine::backbone::preprocess(&images)?, true);
+            let (loss, stats) = training.step(&features, &batch.poses, &mut rng)?;
+            opt.backward_step(&loss);
+            loss_sum = (loss_sum.0 + stats.loss, loss_sum.1 + 1);
+            bar.set_message(format!("loss {:.3}", loss_sum.0 / loss_sum.1 as f64));
+            bar.inc(batch.len() as u64);
+        }
+        bar.finish_and_clear();
+        let metrics = validate(&backbone, &training, &val, &camera, args.val_images)?;
+        progress.epoch = epoch + 1;
+        progress.seconds += started.elapsed().as_secs_f64();
+        let point = json!({"epoch": epoch + 1, "loss": loss_sum.0 / loss_sum.1.max(1) as f64, "val": metrics, "seconds": progress.seconds});
+        eprintln!("epoch {}: {point}", epoch + 1);
+        progress.curve.push(point);
+        save_state(&work, &vs, &training, &progress)?;
+    }
+    let (tau, r_bar) = statistics(&backbone, &training, &train, args.batch)?;
+    let neural_mesh = NeuralMesh {
+        mesh,
+        vertex_features: training.vertex_features.shallow_clone(),
+        clutter: clutter_mean(&training.clutter),
+        kappa: Tensor::full(
+            [cuboid.mesh(TARGET_VERTICES).vertices().len() as i64],
+            1.0 / training.config.temperature,
+            (Kind::Float, device),
+        ),
+        tau,
+        r_bar,
+    };
+    let manifest = Manifest {
+        format_version: checkpoint::FORMAT_VERSION,
+        category: args.category.clone(),
+        version: format!("source-{}", crate::synth_cmd::git_commit()),
+        vertices: neural_mesh.mesh.vertices().len(),
+        cuboid,
+        backbone: args.arch,
+        feature_dim: 128,
+        crop,
+        clutter: 1,
+        dtype: args.dtype.clone(),
+        training: json!({
+            "command": std::env::args().collect::<Vec<_>>().join(" "),
+            "data": {"profile": data["profile"], "seed": data["seed"], "commit": data["commit"]},
+            "commit": crate::synth_cmd::git_commit(),
+            "epochs": args.epochs, "batch": args.batch, "lr": args.lr, "seed": args.seed,
+            "init_backbone": args.init_backbone.as_ref().map(|p| p.display().to_string()),
+            "train_seconds": progress.seconds,
+            "validation_curve": progress.curve,
+            "device": format!("{device:?}"),
+        }),
+        metrics: serde_json::Value::Null,
+        files: Default::default(),
+    };
+    checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
+    eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
+    Ok(())
+}
+
+fn bar(len: u64, prefix: &str) -> ProgressBar {
+    let style = ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {elapsed} eta {eta} {msg}")
+        .expect("valid template")
+        .progress_chars("=> ");
+    ProgressBar::new(len).with_style(style).with_prefix(prefix.to_string())
+}
+
+fn images_tensor(batch: &Batch, device: Device) -> Tensor {
+    Tensor::from_slice(&batch.images)
+        .reshape([batch.len() as i64, 3, batch.height as i64, batch.width as i64])
+        .to_device(device)
+}
+
+/// Acc@π/6, Acc@π/18 and MedErr on (the first `limit` images of) the validation split.
+fn validate(
+    backbone: &Backbone,
+    training: &SourceTraining,
+    val: &SyncarSplit,
+    camera: &Camera,
+    limit: usize,
+) -> Result<PoseMetrics> {
+    let solver_mesh = SolverMesh::new(&training.vertex_features, &clutter_mean(&training.clutter))?;
+    let n = if limit == 0 { val.len() } else { limit.min(val.len()) };
+    let config = SolverConfig::default();
+    let mut errors = Vec::with_capacity(n);
+    for i in 0..n {
+        let (pixels, pose, h, w, _) = udapose_lab::loader::load_sample(val, i)?;
+        let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+        let features = estimator::features(backbone, &image)?;
+        let estimate = estimator::estimate(&training.mesh, &solver_mesh, &features[0], camera, &config);
+        let gt = [pose.azimuth, pose.elevation, pose.theta];
+        errors.push(pose_error(estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]), gt));
+    }
+    Ok(PoseMetrics::from_errors(&errors)?)
+}
+
+/// τ_r and R̄_r over the training set at ground-truth poses, in eval mode.
+fn statistics(
+    backbone: &Backbone,
+    training: &SourceTraining,
+    train: &SyncarSplit,
+    batch: usize,
+) -> Result<(Tensor, Tensor)> {
+    let mut stats = VertexStatistics::new(training.mesh.vertices().len(), 128, training.vertex_features.device());
+    let mut loader = Loader::new(train.clone(), batch, 2, 0)?;
+    let bar = bar(loader.len() as u64, "vertex statistics");
+    for b in loader.epoch() {
+        let b = b?;
+        let images = images_tensor(&b, training.vertex_features.device());
+        let x = udapose_engine::backbone::preprocess(&images)?;
+        let features = tch::no_grad(|| backbone.forward_t(&x, false));
+        stats.add(training, &features, &b.poses)?;
+        bar.inc(b.len() as u64);
+    }
+    bar.finish_and_clear();
+    Ok(stats.finish(0.1))
+}
+
+const STATE: &str = "state.safetensors";
+const PROGRESS: &str = "progress.json";
+
+/// Loads the latest epoch checkpoint of `work`, if any.
+fn resume(work: &Path, vs: &mut nn::VarStore, training: &mut SourceTraining) -> Result<Progress> {
+    let Some(dir) = latest_epoch(work)? else { return Ok(Progress::default()) };
+    let progress: Progress = serde_json::from_str(&std::fs::read_to_string(dir.join(PROGRESS))?)?;
+    let tensors: std::collections::BTreeMap<String, Tensor> =
+        Tensor::read_safetensors(dir.join(STATE))?.into_iter().collect();
+    tch::no_grad(|| -> Result<()> {
+        for (name, mut var) in vs.variables() {
+            let saved =
+                tensors.get(&format!("backbone.{name}")).with_context(|| format!("{}: no {name}", dir.display()))?;
+            var.f_copy_(saved)?;
+        }
+        training.vertex_features = tensors.get("vertex_features").context("no vertex_features")?.shallow_clone();
+        training.clutter.f_copy_(tensors.get("clutter").context("no clutter")?)?;
+        Ok(())
+    })?;
+    eprintln!("resuming from {} (epoch {})", dir.display(), progress.epoch);
+    Ok(progress)
+}
+
+fn latest_epoch(work: &Path) -> Result<Option<PathBuf>> {
+    let mut epochs: Vec<(usize, PathBuf)> = std::fs::read_dir(work)?
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let n = e.file_name().to_str()?.strip_prefix("epoch-")?.parse().ok()?;
+            e.path().join(PROGRESS).is_file().then(|| (n, e.path()))
+        })
+        .collect();
+    epochs.sort();
+    Ok(epochs.pop().map(|(_, p)| p))
+}
+
+/// Writes `epoch-<n>/` (weights, banks, progress last) under a temporary name, renames it into
+/// place, and keeps the two newest.
+fn save_state(work: &Path, vs: &nn::VarStore, training: &SourceTraining, progress: &Progress) -> Result<()> {
+    let dir = work.join(format!("epoch-{:04}", progress.epoch));
+    let tmp = work.join(format!(".epoch-{:04}.tmp", progress.epoch));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp)?;
+    let mut tensors: Vec<(String, Tensor)> =
+        vs.variables().into_iter().map(|(n, t)| (format!("backbone.{n}"), t)).collect();
+    tensors.push(("vertex_features".into(), training.vertex_features.shallow_clone()));
+    tensors.push(("clutter".into(), training.clutter.shallow_clone()));
+    Tensor::write_safetensors(&tensors, tmp.join(STATE))?;
+    std::fs::File::open(tmp.join(STATE))?.sync_all()?;
+    udapose_lab::atomic::write_atomic(&tmp.join(PROGRESS), serde_json::to_string(progress)?.as_bytes())?;
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::rename(&tmp, &dir)?;
+    let mut old: Vec<PathBuf> = std::fs::read_dir(work)?
+        .filter_map(|e| e.ok())
+        .map(|e| e.path())
+        .filter(|p| p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("epoch-")))
+        .collect();
+    old.sort();
+    for p in old.iter().rev().skip(2) {
+        std::fs::remove_dir_all(p)?;
+    }
+    Ok(())
+}

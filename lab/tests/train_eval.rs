@@ -1,0 +1,117 @@
+//! The quick-profile source model: `make test` trains it once per run (`udapose-lab train`,
+//! 2 epochs) and passes it in `UDAPOSE_QUICK_MODEL`; these tests load it, evaluate it with
+//! `udapose-lab eval`, and check that training resumes from its last epoch.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use udapose_engine::checkpoint;
+
+const LAB: &str = env!("CARGO_BIN_EXE_udapose-lab");
+
+fn env_path(var: &str) -> PathBuf {
+    PathBuf::from(std::env::var_os(var).unwrap_or_else(|| panic!("{var} is set by `make test`")))
+}
+
+fn lab(args: &[&str]) -> String {
+    let out = Command::new(LAB).args(args).output().expect("run udapose-lab");
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "udapose-lab {args:?} failed:\n{stderr}");
+    stderr
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("udapose-train-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+#[test]
+fn the_quick_model_loads_with_its_provenance() {
+    let model = checkpoint::load(&env_path("UDAPOSE_QUICK_MODEL"), tch::Device::Cpu).unwrap();
+    let m = &model.manifest;
+    assert_eq!((m.category.as_str(), m.crop, m.vertices, m.dtype.as_str()), ("car", [64, 160], 1054, "f16"));
+    let curve = m.training["validation_curve"].as_array().unwrap();
+    assert_eq!(curve.len(), 2, "one validation point per epoch");
+    for p in curve {
+        let acc = p["val"]["acc_pi_6"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&acc) && p["val"]["n"] == 60);
+    }
+    assert!(m.training["command"].as_str().unwrap().contains("train"));
+    // τ from the training set's cosines; R̄ a mean resultant length.
+    let tau = &model.neural_mesh.tau;
+    let r_bar = &model.neural_mesh.r_bar;
+    let in_range = |t: &tch::Tensor, lo: f64, hi: f64| {
+        f64::try_from(t.min()).unwrap() >= lo && f64::try_from(t.max()).unwrap() <= hi
+    };
+    assert!(in_range(tau, -1.0, 1.0) && in_range(r_bar, 0.0, 1.0 + 1e-3));
+}
+
+#[test]
+fn eval_reports_every_requested_domain() {
+    let out = tmp("eval").with_extension("json");
+    let model = env_path("UDAPOSE_QUICK_MODEL");
+    let data = env_path("UDAPOSE_QUICK_DATA");
+    let args =
+        ["eval", "--model", model.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    lab(&[&args[..], &["--domains", "source,occ-l2", "--limit", "20"]].concat());
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    for d in ["source", "occ-l2"] {
+        let m = &report["domains"][d];
+        assert_eq!(m["n"], 20, "{d}");
+        for k in ["acc_pi_6", "acc_pi_18"] {
+            assert!((0.0..=1.0).contains(&m[k].as_f64().unwrap()));
+        }
+        assert!(m["acc_pi_18"].as_f64() <= m["acc_pi_6"].as_f64());
+        assert!((0.0..=180.0).contains(&m["med_err_deg"].as_f64().unwrap()));
+    }
+    let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
+    assert!(md.contains("| occ-l2 |"));
+    let missing = lab_fails(&[
+        "eval",
+        "--model",
+        "/nonexistent",
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(missing.contains("manifest.json"), "{missing}");
+}
+
+fn lab_fails(args: &[&str]) -> String {
+    let out = Command::new(LAB).args(args).output().expect("run udapose-lab");
+    assert!(!out.status.success());
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn training_resumes_from_its_last_epoch() {
+    let data = env_path("UDAPOSE_QUICK_DATA");
+    let out = tmp("resume");
+    let work = tmp("resume-work");
+    let train = |epochs: &str, out: &Path| {
+        lab(&[
+            "train",
+            "--data",
+            data.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--work",
+            work.to_str().unwrap(),
+            "--epochs",
+            epochs,
+            "--val-images",
+            "8",
+        ])
+    };
+    train("1", &out);
+    let log = train("2", &out.with_extension("b"));
+    assert!(log.contains("resuming from") && log.contains("(epoch 1)"), "{log}");
+    let model = checkpoint::load(&out.with_extension("b"), tch::Device::Cpu).unwrap();
+    assert_eq!(model.manifest.training["validation_curve"].as_array().unwrap().len(), 2);
+    assert!(
+        lab_fails(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()])
+            .contains("already exists")
+    );
+}
