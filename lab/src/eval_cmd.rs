@@ -84,7 +84,14 @@ pub fn run(args: &Args) -> Result<()> {
         md.push_str(&format!("| {name} | {:.3} | {:.3} | {:.1} | {} |\n", m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n));
         domains.insert(name.clone(), serde_json::to_value(m)?);
     }
+    let profile = std::fs::read_to_string(args.data.join("manifest.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .map_or(serde_json::Value::Null, |m| m["profile"].clone());
     let report = json!({
+        "profile": profile,
+        "train_seconds": model.manifest.training["train_seconds"],
+        "machine": machine(),
         "model": model.manifest.version,
         "model_dir": args.model.display().to_string(),
         "data": args.data.display().to_string(),
@@ -95,4 +102,16 @@ pub fn run(args: &Args) -> Result<()> {
     udapose_lab::atomic::write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
     udapose_lab::atomic::write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     Ok(())
+}
+
+/// CPU model and thread count, for reports.
+pub fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("model name").map(|v| v.trim_start_matches([' ', '\t', ':']).to_string()))
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    format!("{cpu}, {} threads", rayon::current_num_threads())
 }

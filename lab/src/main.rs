@@ -1,5 +1,6 @@
 //! `udapose-lab`: offline tools around the engine.
 
+mod bench_cmd;
 mod corrupt_cmd;
 mod doctor;
 mod eval_cmd;
@@ -31,6 +32,8 @@ enum Command {
     Train(train_cmd::Args),
     /// Evaluate a model on every domain of a dataset: Acc@π/6, Acc@π/18, MedErr.
     Eval(eval_cmd::Args),
+    /// Benchmarks on real data: `bench solver` times udapose's solver against the autograd reference.
+    Bench(bench_cmd::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -40,5 +43,6 @@ fn main() -> anyhow::Result<()> {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Eval(args) => eval_cmd::run(&args),
+        Command::Bench(args) => bench_cmd::run(&args),
     }
 }

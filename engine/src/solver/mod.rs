@@ -26,6 +26,7 @@
 
 mod gradient;
 mod optimise;
+pub mod reference;
 pub mod synthetic;
 
 use std::f64::consts::{PI, TAU};
