@@ -55,3 +55,37 @@ impl PoseMetrics {
         Ok(PoseMetrics { acc_pi_6: frac(PI / 6.0), acc_pi_18: frac(PI / 18.0), med_err_deg: median.to_degrees(), n })
     }
 }
+
+/// 95% percentile-bootstrap intervals of the metrics (BENCHMARK.md §6): `[low, high]` each.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MetricIntervals {
+    pub acc_pi_6_ci: [f64; 2],
+    pub acc_pi_18_ci: [f64; 2],
+    pub med_err_deg_ci: [f64; 2],
+}
+
+impl MetricIntervals {
+    /// Resamples the images `resamples` times (with replacement) with a fixed seed.
+    pub fn bootstrap(errors: &[f64], resamples: usize, seed: u64) -> Result<Self> {
+        use rand::{Rng, SeedableRng};
+        PoseMetrics::from_errors(errors)?;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut draws: Vec<PoseMetrics> = Vec::with_capacity(resamples);
+        let mut sample = vec![0.0; errors.len()];
+        for _ in 0..resamples.max(1) {
+            sample.iter_mut().for_each(|s| *s = errors[rng.random_range(0..errors.len())]);
+            draws.push(PoseMetrics::from_errors(&sample)?);
+        }
+        let interval = |f: fn(&PoseMetrics) -> f64| {
+            let mut v: Vec<f64> = draws.iter().map(f).collect();
+            v.sort_by(f64::total_cmp);
+            let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+            [at(0.025), at(0.975)]
+        };
+        Ok(MetricIntervals {
+            acc_pi_6_ci: interval(|m| m.acc_pi_6),
+            acc_pi_18_ci: interval(|m| m.acc_pi_18),
+            med_err_deg_ci: interval(|m| m.med_err_deg),
+        })
+    }
+}

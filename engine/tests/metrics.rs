@@ -77,3 +77,19 @@ fn metrics_on_hand_computed_cases() {
     assert!((m.acc_pi_6 - 0.75).abs() < 1e-15, "π/6 itself is not below π/6");
     assert!(PoseMetrics::from_errors(&[]).is_err());
 }
+
+#[test]
+fn bootstrap_intervals_bracket_the_estimate_and_shrink_with_n() {
+    use udapose_engine::metrics::MetricIntervals;
+    let errors: Vec<f64> = (0..300).map(|i| ((i * 37) % 100) as f64 / 100.0 * 1.2).collect();
+    let m = PoseMetrics::from_errors(&errors).unwrap();
+    let ci = MetricIntervals::bootstrap(&errors, 1000, 0).unwrap();
+    assert!(ci.acc_pi_6_ci[0] <= m.acc_pi_6 && m.acc_pi_6 <= ci.acc_pi_6_ci[1]);
+    assert!(ci.med_err_deg_ci[0] <= m.med_err_deg && m.med_err_deg <= ci.med_err_deg_ci[1]);
+    // p ≈ 0.44 with n = 300: the 95% interval is about ±0.056.
+    let width = ci.acc_pi_6_ci[1] - ci.acc_pi_6_ci[0];
+    assert!((0.08..0.15).contains(&width), "width {width}");
+    let small = MetricIntervals::bootstrap(&errors[..30], 1000, 0).unwrap();
+    assert!(small.acc_pi_6_ci[1] - small.acc_pi_6_ci[0] > 2.0 * width);
+    assert_eq!(ci, MetricIntervals::bootstrap(&errors, 1000, 0).unwrap(), "fixed seed");
+}

@@ -7,6 +7,7 @@ use serde_json::json;
 use tch::Tensor;
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::metrics::MetricIntervals;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
 use udapose_engine::{Camera, PoseMetrics, pose_error};
@@ -52,7 +53,7 @@ pub fn run(args: &Args) -> Result<()> {
     }
     let mut domains = serde_json::Map::new();
     let mut md = format!(
-        "# Evaluation of `{}`\n\n`udapose-lab eval --model {} --data {} --split {}` (k = {}), commit `{}`.\n\n\
+        "# Evaluation of `{}`\n\n`udapose-lab eval --model {} --data {} --split {}` (k = {}), commit `{}`.\n\nIn brackets: 95% bootstrap intervals (1000 resamples of the test images, seed 0).\n\n\
          | domain | Acc@π/6 | Acc@π/18 | MedErr (°) | n |\n|---|---:|---:|---:|---:|\n",
         model.manifest.version,
         args.model.display(),
@@ -77,12 +78,29 @@ pub fn run(args: &Args) -> Result<()> {
             errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
         }
         let m = PoseMetrics::from_errors(&errors)?;
+        let ci = MetricIntervals::bootstrap(&errors, 1000, 0)?;
         eprintln!(
             "{name}: Acc@π/6 {:.3}, Acc@π/18 {:.3}, MedErr {:.1}° (n = {})",
             m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n
         );
-        md.push_str(&format!("| {name} | {:.3} | {:.3} | {:.1} | {} |\n", m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n));
-        domains.insert(name.clone(), serde_json::to_value(m)?);
+        md.push_str(&format!(
+            "| {name} | {:.3} [{:.3}, {:.3}] | {:.3} [{:.3}, {:.3}] | {:.1} [{:.1}, {:.1}] | {} |\n",
+            m.acc_pi_6,
+            ci.acc_pi_6_ci[0],
+            ci.acc_pi_6_ci[1],
+            m.acc_pi_18,
+            ci.acc_pi_18_ci[0],
+            ci.acc_pi_18_ci[1],
+            m.med_err_deg,
+            ci.med_err_deg_ci[0],
+            ci.med_err_deg_ci[1],
+            m.n
+        ));
+        let mut entry = serde_json::to_value(m)?;
+        if let (Some(entry), serde_json::Value::Object(ci)) = (entry.as_object_mut(), serde_json::to_value(ci)?) {
+            entry.extend(ci);
+        }
+        domains.insert(name.clone(), entry);
     }
     let profile = std::fs::read_to_string(args.data.join("manifest.json"))
         .ok()
