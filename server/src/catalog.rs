@@ -1,7 +1,8 @@
 //! What models the server knows about and whether they can serve.
 //!
-//! No model loader exists yet: every discovered model is reported as found
-//! but not loaded, and the server is not ready until a loader lands.
+//! At start every `<dir>/<category>/` with a manifest is loaded and validated by the engine
+//! (weights, checksums, shapes); a model that fails stays listed, not ready, with the reason.
+//! Serving estimates from them (workers, batching, hot swap) is the inference-service issue.
 
 use std::{
     fs,
@@ -21,6 +22,9 @@ pub struct ModelEntry {
     /// The version being served; `None` while nothing is loaded.
     pub version: Option<String>,
     pub ready: bool,
+    /// Why the model could not be loaded.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
 }
 
 /// The models configured under one directory.
@@ -41,7 +45,7 @@ impl Catalog {
     /// Finds `<dir>/<category>/manifest.json`; a missing `dir` means no models.
     pub fn scan(dir: &Path) -> Result<Self> {
         let models = if dir.exists() {
-            found_categories(dir)?.into_iter().map(not_loaded).collect()
+            found_categories(dir)?.into_iter().map(|c| load(dir, c)).collect()
         } else {
             tracing::warn!("models directory {} does not exist", dir.display());
             Vec::new()
@@ -63,37 +67,39 @@ impl Catalog {
             (_, 0) => {
                 format!("no models loaded: none configured (no <category>/{MANIFEST} under {})", self.dir.display())
             }
-            (0, _) => format!(
-                "no models loaded: {total} found but not loadable yet \
-                 (this build has no model loader): {}",
-                self.categories()
-            ),
-            _ => format!("{loaded} of {total} models loaded"),
+            _ if loaded == total => format!("{loaded} of {total} models loaded"),
+            _ => {
+                let failed: Vec<String> = self
+                    .models
+                    .iter()
+                    .filter_map(|m| m.error.as_ref().map(|e| format!("{}: {e}", m.category)))
+                    .collect();
+                format!("{loaded} of {total} models loaded; failed: {}", failed.join("; "))
+            }
         };
         Readiness { ready, reason }
     }
 
-    /// Says at start-up what was found and that none of it serves yet.
+    /// Says at start-up what was loaded and what failed.
     pub fn log_summary(&self) {
-        if !self.models.is_empty() {
-            tracing::warn!(
-                "found {} model(s) in {}: {}; this build cannot load models yet",
-                self.models.len(),
-                self.dir.display(),
-                self.categories()
-            );
+        for m in &self.models {
+            match (&m.version, &m.error) {
+                (Some(v), _) => tracing::info!(category = %m.category, version = %v, "model loaded"),
+                (_, Some(e)) => tracing::warn!(category = %m.category, "model not loaded: {e}"),
+                _ => {}
+            }
         }
         tracing::info!("{}", self.readiness().reason);
     }
-
-    fn categories(&self) -> String {
-        let names: Vec<&str> = self.models.iter().map(|m| m.category.as_str()).collect();
-        names.join(", ")
-    }
 }
 
-fn not_loaded(category: String) -> ModelEntry {
-    ModelEntry { category, version: None, ready: false }
+/// Loads and validates one model directory (the tensors are not kept yet: nothing serves them).
+fn load(dir: &Path, category: String) -> ModelEntry {
+    let device = udapose_engine::runtime::RuntimeInfo::detect().device();
+    match udapose_engine::checkpoint::load(&dir.join(&category), device) {
+        Ok(model) => ModelEntry { category, version: Some(model.manifest.version), ready: true, error: None },
+        Err(e) => ModelEntry { category, version: None, ready: false, error: Some(e.to_string()) },
+    }
 }
 
 /// Sorted names of the subdirectories of `dir` that hold a manifest.
@@ -138,7 +144,7 @@ mod tests {
     }
 
     #[test]
-    fn manifest_dirs_are_found_but_not_ready() {
+    fn broken_models_are_listed_not_ready_with_their_reason() {
         let dir = temp_dir("found");
         for category in ["car", "bus"] {
             fs::create_dir(dir.join(category)).unwrap();
@@ -150,10 +156,20 @@ mod tests {
 
         let names: Vec<_> = catalog.models().iter().map(|m| m.category.as_str()).collect();
         assert_eq!(names, ["bus", "car"]);
-        assert!(catalog.models().iter().all(|m| !m.ready && m.version.is_none()));
+        assert!(catalog.models().iter().all(|m| !m.ready && m.version.is_none() && m.error.is_some()));
         let readiness = catalog.readiness();
         assert!(!readiness.ready);
-        assert!(readiness.reason.contains("2 found but not loadable yet"));
+        assert!(readiness.reason.contains("0 of 2 models loaded; failed: bus:"), "{}", readiness.reason);
+    }
+
+    #[test]
+    fn the_shipped_model_loads_and_makes_the_server_ready() {
+        let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
+        let catalog = Catalog::scan(&shipped).unwrap();
+        let car = catalog.models().iter().find(|m| m.category == "car").expect("models/car is shipped");
+        assert!(car.ready, "{:?}", car.error);
+        assert!(car.version.as_deref().is_some_and(|v| v.starts_with("source-")));
+        assert!(catalog.readiness().ready);
     }
 
     #[test]
