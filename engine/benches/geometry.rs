@@ -117,13 +117,7 @@ fn write_report(mesh: &Mesh, rows: &[Row], grids: &[&str]) {
         .output()
         .is_ok_and(|o| !o.stdout.is_empty());
     let commit = if dirty { format!("{commit}+dirty") } else { commit };
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("model name").map(|v| v.trim_start_matches([' ', '\t', ':']).to_string()))
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
+    let cpu = udapose_engine::runtime::cpu_model();
     let threads = rayon::current_num_threads();
     let mut md = format!(
         "# Geometry benchmark\n\nProduced by `cargo bench -p udapose-engine` (release, {threads} rayon threads) on {cpu}, commit `{commit}`.\n\

@@ -249,13 +249,7 @@ fn write_report(images: usize, times: &[TimeRow], accuracy: &[AccuracyRow]) {
         .map_or_else(|| "uncommitted".into(), |o| String::from_utf8_lossy(&o.stdout).trim().to_string());
     let dirty = git(&["status", "--porcelain", "--untracked-files=no"]).is_some_and(|o| !o.stdout.is_empty());
     let commit = if dirty { format!("{commit}+dirty") } else { commit };
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("model name").map(|v| v.trim_start_matches([' ', '\t', ':']).to_string()))
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
+    let cpu = udapose_engine::runtime::cpu_model();
     let threads = rayon::current_num_threads();
     let mut md = format!(
         "# Render-and-compare solver on synthetic images\n\n\

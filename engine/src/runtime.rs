@@ -36,3 +36,15 @@ impl RuntimeInfo {
         if self.cuda_available { tch::Device::Cuda(0) } else { tch::Device::Cpu }
     }
 }
+
+/// The CPU's model name (from /proc/cpuinfo), for benchmark reports.
+pub fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into())
+}

@@ -153,17 +153,6 @@ fn shell_quote(arg: &str) -> String {
     if plain { arg.to_string() } else { format!("'{}'", arg.replace('\'', "'\\''")) }
 }
 
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown".into())
-}
-
 fn load_average() -> String {
     std::fs::read_to_string("/proc/loadavg")
         .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
@@ -307,7 +296,7 @@ fn solver(args: &SolverArgs) -> Result<()> {
     let reference_lower = rows.iter().filter(|r| r.reference.loss < r.fast.loss).count();
     let failures = |pick: fn(&Row) -> &Solved| rows.iter().filter(|r| pick(r).pose.is_none()).count();
     let commit = crate::synth_cmd::git_commit();
-    let cpu = cpu_model();
+    let cpu = udapose_engine::runtime::cpu_model();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let load_after = load_average();
     let solved = |s: &Solved| {

@@ -124,12 +124,6 @@ pub fn run(args: &Args) -> Result<()> {
 
 /// CPU model and thread count, for reports.
 pub fn machine() -> String {
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("model name").map(|v| v.trim_start_matches([' ', '\t', ':']).to_string()))
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
+    let cpu = udapose_engine::runtime::cpu_model();
     format!("{cpu}, {} threads", rayon::current_num_threads())
 }
