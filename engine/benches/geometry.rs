@@ -2,8 +2,11 @@
 //! Prints a table and writes `reports/geometry.md` and `reports/geometry.json` with the machine
 //! and commit. Times are medians over repeated batches (machines are noisy: compare ratios).
 
+mod common;
+
 use std::hint::black_box;
-use std::time::Instant;
+
+use common::time;
 
 use rayon::prelude::*;
 use udapose_engine::mesh::TARGET_VERTICES;
@@ -22,26 +25,6 @@ fn poses(n: usize) -> Vec<Pose> {
             )
         })
         .collect()
-}
-
-/// Median and spread of the time per call (µs) over 15 batches, each long enough to time.
-fn time(mut call: impl FnMut(usize)) -> (f64, f64, f64) {
-    let start = Instant::now();
-    let mut warm = 0;
-    while start.elapsed().as_secs_f64() < 0.2 {
-        call(warm);
-        warm += 1;
-    }
-    let per_batch = (warm / 4).max(1);
-    let mut batches: Vec<f64> = (0..15)
-        .map(|b| {
-            let t = Instant::now();
-            (0..per_batch).for_each(|i| call(b * per_batch + i));
-            t.elapsed().as_secs_f64() * 1e6 / per_batch as f64
-        })
-        .collect();
-    batches.sort_by(f64::total_cmp);
-    (batches[7], batches[0], batches[14])
 }
 
 struct Row {

@@ -8,6 +8,8 @@
 //! images (or over repeated calls for the micro-benchmarks); machines are noisy, compare ratios.
 //! `UDAPOSE_SOLVER_IMAGES=N` sets the number of images per set (default 100).
 
+mod common;
+
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -25,23 +27,9 @@ fn median(v: &mut [f64]) -> f64 {
     if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
 }
 
-/// Median time per call in µs over 15 batches, each long enough to time.
-fn time_us(mut call: impl FnMut(usize)) -> f64 {
-    let start = Instant::now();
-    let mut warm = 0;
-    while start.elapsed().as_secs_f64() < 0.2 {
-        call(warm);
-        warm += 1;
-    }
-    let per_batch = (warm / 4).max(1);
-    let mut batches: Vec<f64> = (0..15)
-        .map(|b| {
-            let t = Instant::now();
-            (0..per_batch).for_each(|i| call(b * per_batch + i));
-            t.elapsed().as_secs_f64() * 1e6 / per_batch as f64
-        })
-        .collect();
-    median(&mut batches)
+/// Median time per call in µs.
+fn time_us(call: impl FnMut(usize)) -> f64 {
+    common::time(call).0
 }
 
 struct TimeRow {

@@ -58,12 +58,12 @@ pub fn rotation(azimuth: f64, elevation: f64, theta: f64) -> Matrix3<f64> {
     rot_z(theta) * rot_x(-(std::f64::consts::FRAC_PI_2 - elevation)) * rot_z(-azimuth)
 }
 
-fn rot_x(t: f64) -> Matrix3<f64> {
+pub(crate) fn rot_x(t: f64) -> Matrix3<f64> {
     let (s, c) = t.sin_cos();
     Matrix3::new(1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c)
 }
 
-fn rot_z(t: f64) -> Matrix3<f64> {
+pub(crate) fn rot_z(t: f64) -> Matrix3<f64> {
     let (s, c) = t.sin_cos();
     Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
 }

@@ -265,7 +265,7 @@ fn check_size(width: usize, height: usize) -> Result<()> {
 
 /// Twice the signed area of `(a, b, q)`: positive when q is left of a→b in (col, row) axes.
 #[inline(always)]
-fn edge(a: [f64; 2], b: [f64; 2], q: [f64; 2]) -> f64 {
+pub(crate) fn edge(a: [f64; 2], b: [f64; 2], q: [f64; 2]) -> f64 {
     (b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])
 }
 

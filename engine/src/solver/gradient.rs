@@ -18,24 +18,9 @@
 use nalgebra::{Matrix3, Vector3};
 
 use super::{Problem, Scratch};
-use crate::camera::Pose;
+use crate::camera::{Pose, rot_x, rot_z};
 use crate::error::Result;
-use crate::raster::NO_FACE;
-
-#[inline(always)]
-fn edge(a: [f64; 2], b: [f64; 2], q: [f64; 2]) -> f64 {
-    (b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0])
-}
-
-fn rot_x(t: f64) -> Matrix3<f64> {
-    let (s, c) = t.sin_cos();
-    Matrix3::new(1.0, 0.0, 0.0, 0.0, c, -s, 0.0, s, c)
-}
-
-fn rot_z(t: f64) -> Matrix3<f64> {
-    let (s, c) = t.sin_cos();
-    Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
-}
+use crate::raster::{NO_FACE, edge};
 
 /// `∂R/∂a`, `∂R/∂e`, `∂R/∂θ` of `R = Rz(θ)·Rx(e − π/2)·Rz(−a)`.
 fn rotation_derivatives(pose: &Pose) -> [Matrix3<f64>; 3] {

@@ -433,7 +433,7 @@ pub fn select_distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> V
 /// `k` initial poses refined by `config.optimizer` (in parallel).
 pub fn solve(problem: &Problem, config: &SolverConfig) -> Result<Estimate> {
     let inits = multi_pose_init(problem, config)?;
-    let mut hypotheses: Vec<Hypothesis> = inits
+    let hypotheses: Vec<Hypothesis> = inits
         .par_iter()
         .map_init(Scratch::default, |scratch, init| {
             let refined = optimise::refine(problem, scratch, init, &config.optimizer)?;
@@ -446,9 +446,16 @@ pub fn solve(problem: &Problem, config: &SolverConfig) -> Result<Estimate> {
             })
         })
         .collect::<Result<_>>()?;
-    hypotheses.sort_by(|a, b| a.loss.total_cmp(&b.loss));
-    let best = hypotheses.first().ok_or_else(|| EngineError::InvalidInput("no grid pose to start from".into()))?;
-    Ok(Estimate { pose: best.pose, score: 1.0 - best.loss, hypotheses })
+    Estimate::from_hypotheses(hypotheses)
+}
+
+impl Estimate {
+    /// Ranks refined hypotheses by loss; the best one is the estimate.
+    pub fn from_hypotheses(mut hypotheses: Vec<Hypothesis>) -> Result<Estimate> {
+        hypotheses.sort_by(|a, b| a.loss.total_cmp(&b.loss));
+        let best = hypotheses.first().ok_or_else(|| EngineError::InvalidInput("no grid pose to start from".into()))?;
+        Ok(Estimate { pose: best.pose, score: 1.0 - best.loss, hypotheses })
+    }
 }
 
 /// Render and compare (METHOD.md §6): the pose of `model` in the image whose features are

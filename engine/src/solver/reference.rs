@@ -272,15 +272,13 @@ fn rot_x(t: &Tensor) -> Tensor {
 /// returns the lowest-loss hypothesis, as [`super::solve`] does.
 pub fn solve(problem: &ReferenceProblem, inits: &[ScoredPose], config: &ReferenceConfig) -> Result<Estimate> {
     super::Optimizer::Adam(config.adam).validate()?;
-    let mut hypotheses: Vec<Hypothesis> = if config.parallel_hypotheses {
+    let hypotheses: Vec<Hypothesis> = if config.parallel_hypotheses {
         let copies: Vec<(ReferenceProblem, ScoredPose)> = inits.iter().map(|i| (problem.shallow_clone(), *i)).collect();
         copies.into_par_iter().map(|(p, init)| p.refine(&init, &config.adam)).collect::<Result<_>>()?
     } else {
         inits.iter().map(|init| problem.refine(init, &config.adam)).collect::<Result<_>>()?
     };
-    hypotheses.sort_by(|a, b| a.loss.total_cmp(&b.loss));
-    let best = hypotheses.first().ok_or_else(|| EngineError::InvalidInput("no grid pose to start from".into()))?;
-    Ok(Estimate { pose: best.pose, score: 1.0 - best.loss, hypotheses })
+    Estimate::from_hypotheses(hypotheses)
 }
 
 /// The reference render and compare: udapose's [`multi_pose_init`] (same grid, fit distances and
