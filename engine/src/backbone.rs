@@ -326,7 +326,9 @@ impl Backbone {
         let y = up(&self.upsample1, &y, &l3, train);
         let y = up(&self.upsample2, &y, &l2, train);
         let y = y.conv2d(&self.out_layer, None::<Tensor>, [1, 1], [0, 0], [1, 1], 1);
-        let norm = y.norm_scalaropt_dim(2, [1], true).clamp_min(NORM_EPS);
+        // sqrt(Σy² + ε²), not max(‖y‖, ε): the norm's gradient is 0/0 at a zero vector, which
+        // fine-tuning can reach (a pixel whose decoder activations all die).
+        let norm = (y.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float) + NORM_EPS * NORM_EPS).sqrt();
         y / norm
     }
 

@@ -18,6 +18,8 @@ pub enum EngineError {
     Io(String),
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    #[error("cancelled")]
+    Cancelled,
     #[error("checkpoint: {0}")]
     Checkpoint(#[from] CheckpointError),
 }

@@ -1,6 +1,7 @@
 //! udapose-engine: the 3DUDA method (see docs/METHOD.md). It knows no I/O protocol: callers
 //! hand it images, meshes and poses, and get poses and models back.
 
+pub mod adapt;
 pub mod backbone;
 pub mod camera;
 pub mod checkpoint;

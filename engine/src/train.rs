@@ -12,7 +12,7 @@ use crate::mesh::Mesh;
 use crate::raster::Rasterizer;
 
 /// Settings of source training; defaults are NeMo's unless noted.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TrainConfig {
     /// Softmax temperature T (κ = 1/T).
     pub temperature: f64,
@@ -128,14 +128,55 @@ impl SourceTraining {
         }
     }
 
+    /// A training run that starts from a trained model's vertex features and clutter vectors
+    /// (the clutter bank starts with them and fills with new clutter features).
+    pub fn from_model(
+        config: TrainConfig,
+        mesh: Mesh,
+        crop: Camera,
+        vertex_features: &Tensor,
+        clutter: &Tensor,
+    ) -> Self {
+        let (r, dim) = (vertex_features.size()[0], vertex_features.size()[1]);
+        let device = vertex_features.device();
+        let mut training = SourceTraining::new(config, mesh, crop, dim, device);
+        debug_assert_eq!(r as usize, training.mesh.vertices().len());
+        training.vertex_features = vertex_features.detach().copy();
+        let n = clutter.size()[0].min(training.clutter.size()[0]);
+        tch::no_grad(|| training.clutter.narrow(0, 0, n).copy_(&clutter.narrow(0, 0, n)));
+        (training.clutter_next, training.clutter_filled) = (n % training.clutter.size()[0], n);
+        training
+    }
+
     /// The loss of a batch of unit-norm features `N×D×h×w` at their ground-truth poses (to be
     /// back-propagated by the caller), and the memory-bank updates, applied at once since
     /// they use detached features.
     pub fn step(&mut self, features: &Tensor, poses: &[Pose], rng: &mut impl Rng) -> Result<(Tensor, StepStats)> {
+        let visible = poses
+            .iter()
+            .map(|p| visible_vertices(&mut self.raster, &self.mesh, &self.crop, self.config.stride, p))
+            .collect::<Result<Vec<_>>>()?;
+        self.step_visible(features, &visible, rng, true)
+    }
+
+    /// The loss of a batch whose positives are given per image (`vertices`/`cells`; the
+    /// neighbour mask uses every vertex's projection). `update_vertices: false` keeps `C`
+    /// frozen (3DUDA's backbone step); the clutter bank is always fed.
+    pub fn step_visible(
+        &mut self,
+        features: &Tensor,
+        visible: &[VisibleVertices],
+        rng: &mut impl Rng,
+        update_vertices: bool,
+    ) -> Result<(Tensor, StepStats)> {
         let [n, d, h, w] = <[i64; 4]>::try_from(features.size())
             .map_err(|_| EngineError::InvalidInput(format!("features must be N×D×h×w, got {:?}", features.size())))?;
-        if n as usize != poses.len() || d != self.vertex_features.size()[1] {
-            return Err(EngineError::InvalidInput(format!("{} poses for features {:?}", poses.len(), features.size())));
+        if n as usize != visible.len() || d != self.vertex_features.size()[1] {
+            return Err(EngineError::InvalidInput(format!(
+                "{} images' targets for features {:?}",
+                visible.len(),
+                features.size()
+            )));
         }
         let grid = self.crop.at_stride(self.config.stride)?;
         if (grid.height as i64, grid.width as i64) != (h, w) {
@@ -147,12 +188,11 @@ impl SourceTraining {
         let flat = features.permute([0, 2, 3, 1]).reshape([n * h * w, d]);
         let (mut rows, mut targets, mut masks, mut noise) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let radius = self.config.neighbour_px_at_256 * self.crop.height as f64 / 256.0;
-        for (b, pose) in poses.iter().enumerate() {
-            let vis = visible_vertices(&mut self.raster, &self.mesh, &self.crop, self.config.stride, pose)?;
+        for (b, vis) in visible.iter().enumerate() {
             let base = b as i64 * h * w;
             rows.extend(vis.cells.iter().map(|c| base + c));
             targets.extend(vis.vertices.iter().copied());
-            masks.push(neighbour_mask(&vis, radius));
+            masks.push(neighbour_mask(vis, radius));
             let k = self.config.clutter_per_image.min(vis.empty_cells.len());
             noise.extend(sample(rng, vis.empty_cells.len(), k).into_iter().map(|i| base + vis.empty_cells[i]));
         }
@@ -177,7 +217,7 @@ impl SourceTraining {
         let regulariser = x_noise.matmul(&self.vertex_features.tr()).mean(Kind::Float);
         let loss = &contrastive + self.config.clutter_weight * &regulariser;
 
-        tch::no_grad(|| self.update_banks(&f.detach(), &targets, n, &x_noise.detach()));
+        tch::no_grad(|| self.update_banks(&f.detach(), &targets, n, &x_noise.detach(), update_vertices));
         let stats = StepStats {
             loss: f64::try_from(&loss).unwrap_or(f64::NAN),
             contrastive: f64::try_from(&contrastive).unwrap_or(f64::NAN),
@@ -189,7 +229,11 @@ impl SourceTraining {
 
     /// `C_k ← normalise(μ C_k + (1 − μ)/B · Σ_b f_bk)` over the batch's visible occurrences
     /// (NeMo divides by the batch size, not the visible count); clutter into the FIFO.
-    fn update_banks(&mut self, f: &Tensor, targets: &[i64], batch: i64, x_noise: &Tensor) {
+    fn update_banks(&mut self, f: &Tensor, targets: &[i64], batch: i64, x_noise: &Tensor, update_vertices: bool) {
+        self.push_clutter(x_noise);
+        if !update_vertices {
+            return;
+        }
         let mu = self.config.momentum;
         let sums = Tensor::zeros_like(&self.vertex_features).index_add(
             0,
@@ -200,6 +244,9 @@ impl SourceTraining {
         let updated = &self.vertex_features * mu + sums * ((1.0 - mu) / batch as f64);
         let updated = &updated / updated.norm_scalaropt_dim(2, [1], true).clamp_min(1e-12);
         self.vertex_features = updated.where_self(&touched, &self.vertex_features);
+    }
+
+    fn push_clutter(&mut self, x_noise: &Tensor) {
         let m = self.clutter.size()[0];
         for i in 0..x_noise.size()[0] {
             self.clutter.get(self.clutter_next).copy_(&x_noise.get(i));

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
+use udapose_engine::adapt::{Threshold, fired_ratio};
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::{self, SolverMesh};
 use udapose_engine::metrics::MetricIntervals;
@@ -65,7 +66,8 @@ pub fn run(args: &Args) -> Result<()> {
     for name in &names {
         let split = SyncarSplit::open(&args.data, name, &args.split)?;
         let n = if args.limit == 0 { split.len() } else { args.limit.min(split.len()) };
-        let mut errors = Vec::with_capacity(n);
+        let (mut errors, mut azimuths, mut fired) =
+            (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
         for i in 0..n {
             let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
             if (ih, iw) != (h, w) {
@@ -76,6 +78,9 @@ pub fn run(args: &Args) -> Result<()> {
             let estimate = estimator::estimate(&model.neural_mesh.mesh, &solver_mesh, &features[0], &camera, &config);
             let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
             errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
+            azimuths.push(pose.azimuth.to_degrees());
+            let stride = config.stride;
+            fired.push(fired_ratio(&model.neural_mesh, &features[0], &camera, stride, &pose, Threshold::Source)?);
         }
         let m = PoseMetrics::from_errors(&errors)?;
         let ci = MetricIntervals::bootstrap(&errors, 1000, 0)?;
@@ -99,6 +104,11 @@ pub fn run(args: &Args) -> Result<()> {
         let mut entry = serde_json::to_value(m)?;
         if let (Some(entry), serde_json::Value::Object(ci)) = (entry.as_object_mut(), serde_json::to_value(ci)?) {
             entry.extend(ci);
+            // Per image, in list order: for paired comparisons and the report's histograms.
+            let degrees: Vec<f64> = errors.iter().map(|e| e.to_degrees()).collect();
+            entry.insert("errors_deg".into(), json!(degrees));
+            entry.insert("azimuths_deg".into(), json!(azimuths));
+            entry.insert("fired_ratios".into(), json!(fired));
         }
         domains.insert(name.clone(), entry);
     }

@@ -42,13 +42,19 @@ pub fn load_sample(split: &SyncarSplit, index: usize) -> Result<(Vec<f32>, Pose,
     if (pose.height, pose.width) != (h, w) {
         bail!("{}: image is {w}x{h}, annotation says {}x{}", path.display(), pose.width, pose.height);
     }
-    let mut planes = vec![0.0f32; 3 * h * w];
+    Ok((planar(&img), pose.pose(), h, w, sample.entry.name))
+}
+
+/// RGB8 pixels as planar `f32` in [0, 1] (3×H×W, channel-major).
+pub fn planar(img: &image::RgbImage) -> Vec<f32> {
+    let hw = (img.width() * img.height()) as usize;
+    let mut planes = vec![0.0f32; 3 * hw];
     for (i, p) in img.pixels().enumerate() {
         for c in 0..3 {
-            planes[c * h * w + i] = p.0[c] as f32 / 255.0;
+            planes[c * hw + i] = p.0[c] as f32 / 255.0;
         }
     }
-    Ok((planes, pose.pose(), h, w, sample.entry.name))
+    planes
 }
 
 /// Reads `batch_size` samples at a time in a seeded shuffled order, one epoch per call of
@@ -133,4 +139,37 @@ fn assemble(samples: Vec<(Vec<f32>, Pose, usize, usize, String)>) -> Result<Batc
         batch.names.push(name);
     }
     Ok(batch)
+}
+
+/// Every image (PNG/JPEG/WebP) directly in `dir`, in name order, as planar RGB in [0, 1]
+/// (N×3×H×W, flattened) with their names. All must be `height`×`width` (detection crops at
+/// the model's crop size).
+pub fn load_image_folder(dir: &std::path::Path, height: usize, width: usize) -> Result<(Vec<f32>, Vec<String>)> {
+    let mut paths: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading the image folder {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| ["png", "jpg", "jpeg", "webp"].contains(&e.to_ascii_lowercase().as_str()))
+        })
+        .collect();
+    paths.sort();
+    if paths.is_empty() {
+        bail!("{} holds no PNG, JPEG or WebP image", dir.display());
+    }
+    let planes = paths
+        .par_iter()
+        .map(|path| {
+            let img = image::open(path).with_context(|| format!("decoding {}", path.display()))?.to_rgb8();
+            let (w, h) = (img.width() as usize, img.height() as usize);
+            if (h, w) != (height, width) {
+                bail!("{}: image is {w}x{h}, the model's crop is {width}x{height}", path.display());
+            }
+            Ok(planar(&img))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let names = paths.iter().map(|p| p.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect();
+    Ok((planes.concat(), names))
 }

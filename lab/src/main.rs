@@ -1,9 +1,12 @@
 //! `udapose-lab`: offline tools around the engine.
 
+mod adapt_cmd;
 mod bench_cmd;
 mod corrupt_cmd;
 mod doctor;
 mod eval_cmd;
+mod plot;
+mod report_cmd;
 mod synth_cmd;
 mod train_cmd;
 
@@ -13,7 +16,7 @@ use clap::{Parser, Subcommand};
 #[command(
     name = "udapose-lab",
     version,
-    about = "udapose offline tools: environment checks, the SynCar-OOD benchmark, corruptions, source training, evaluation"
+    about = "udapose offline tools: environment checks, the SynCar-OOD benchmark, corruptions, source training, adaptation, evaluation"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -32,6 +35,12 @@ enum Command {
     Train(train_cmd::Args),
     /// Evaluate a model on every domain of a dataset: Acc@π/6, Acc@π/18, MedErr.
     Eval(eval_cmd::Args),
+    /// Adapt a model to the images of a folder without labels (3DUDA).
+    Adapt(adapt_cmd::AdaptArgs),
+    /// The oracle: fine-tune a model with the labels of a split, with a given budget.
+    Finetune(adapt_cmd::FinetuneArgs),
+    /// The SynCar-OOD report: source, adapted, oracle and ablation per domain (cached stages).
+    Report(report_cmd::Args),
     /// Benchmarks on real data: `bench solver` times udapose's solver against the autograd reference.
     Bench(bench_cmd::Args),
 }
@@ -43,6 +52,9 @@ fn main() -> anyhow::Result<()> {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Eval(args) => eval_cmd::run(&args),
+        Command::Adapt(args) => adapt_cmd::run_adapt(&args),
+        Command::Finetune(args) => adapt_cmd::run_finetune(&args),
+        Command::Report(args) => report_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
     }
 }

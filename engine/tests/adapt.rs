@@ -1,0 +1,194 @@
+//! The mechanics of 3DUDA's EM loop and of the oracle on a small random model: the source is
+//! never modified, progress arrives phase by phase, cancellation stops the run, the firing test
+//! gates every update, and the oracle takes exactly its budget. (Whether adaptation *helps* is
+//! measured on real data: lab/tests/adapt.rs and reports/syncar-ood.md.)
+
+use std::ops::ControlFlow;
+use std::path::PathBuf;
+
+use tch::{Device, Kind, Tensor, nn};
+use udapose_engine::adapt::{self, AdaptConfig, Event, Phase, Selection, Threshold};
+use udapose_engine::backbone::{Arch, Backbone};
+use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
+use udapose_engine::error::EngineError;
+use udapose_engine::mesh::TARGET_VERTICES;
+use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
+use udapose_engine::{Cuboid, Pose};
+
+fn random_model(name: &str) -> checkpoint::Model {
+    let dir = std::env::temp_dir().join(format!("udapose-adapt-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    tch::manual_seed(5);
+    let cuboid = Cuboid::from_dimensions([0.434, 0.989, 0.279]).unwrap();
+    let m = Manifest {
+        format_version: checkpoint::FORMAT_VERSION,
+        category: "car".into(),
+        version: "source-test".into(),
+        vertices: cuboid.mesh(TARGET_VERTICES).vertices().len(),
+        cuboid,
+        backbone: Arch::ResNet18,
+        feature_dim: 128,
+        crop: [64, 160],
+        clutter: 1,
+        dtype: "f32".into(),
+        training: serde_json::json!({"command": "test"}),
+        metrics: serde_json::Value::Null,
+        files: Default::default(),
+    };
+    let vs = nn::VarStore::new(Device::Cpu);
+    let _backbone = Backbone::new(vs.root(), m.backbone, 128);
+    let r = m.vertices as i64;
+    let unit = |rows: i64| {
+        let t = Tensor::randn([rows, 128], (Kind::Float, Device::Cpu));
+        &t / t.norm_scalaropt_dim(2, [1], true)
+    };
+    let nm = NeuralMesh {
+        mesh: m.cuboid.mesh(TARGET_VERTICES),
+        vertex_features: unit(r),
+        clutter: unit(1),
+        kappa: Tensor::full([r], 1.0 / 0.07, (Kind::Float, Device::Cpu)),
+        tau: Tensor::full([r], 0.8, (Kind::Float, Device::Cpu)),
+        r_bar: Tensor::full([r], 0.9, (Kind::Float, Device::Cpu)),
+    };
+    let path: PathBuf = dir.join("model");
+    checkpoint::save(&path, &m, &vs, &nm).unwrap();
+    checkpoint::load(&path, Device::Cpu).unwrap()
+}
+
+fn images(n: i64) -> Tensor {
+    tch::manual_seed(11);
+    Tensor::rand([n, 3, 64, 160], (Kind::Float, Device::Cpu))
+}
+
+/// Small and fast: 4 images per vertex update, 3 per backbone step, a short solver.
+fn config(threshold: f64) -> AdaptConfig {
+    let solver = SolverConfig {
+        optimizer: Optimizer::Adam(AdamConfig { steps: 10, ..AdamConfig::default() }),
+        ..SolverConfig::default()
+    };
+    AdaptConfig {
+        threshold: Threshold::Fixed(threshold),
+        vertex_batch: 4,
+        batch: 3,
+        max_rounds: 2,
+        solver,
+        ..AdaptConfig::default()
+    }
+}
+
+fn snapshot(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
+    let mut v: Vec<(String, Tensor)> = vs.variables().into_iter().map(|(k, t)| (k, t.copy())).collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+fn same(a: &[(String, Tensor)], b: &[(String, Tensor)]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|((ka, ta), (kb, tb))| ka == kb && ta.equal(tb))
+}
+
+#[test]
+fn adaptation_leaves_the_source_alone_and_reports_each_phase() {
+    let source = random_model("phases");
+    let before = snapshot(&source.vs);
+    let c_before = source.neural_mesh.vertex_features.copy();
+    let mut phases = Vec::new();
+    let mut rounds = 0;
+    // τ = −1: every visible vertex fires, so every stage has work to do.
+    let adapted = adapt::adapt(&source, &images(6), &config(-1.0), &mut |e| {
+        match e {
+            Event::Step { phase, .. } if phases.last() != Some(&phase) => phases.push(phase),
+            Event::Round(r) => {
+                rounds += 1;
+                assert_eq!(r.round, rounds);
+                assert!((0.0..=1.0).contains(&r.fired_ratio) && r.vertices_updated > 0.0);
+            }
+            _ => {}
+        }
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    use Phase::*;
+    assert_eq!(phases, [Features, VertexUpdate, PseudoPoses, Backbone, Features, VertexUpdate, PseudoPoses]);
+    assert_eq!((rounds, adapted.rounds.len()), (2, 2), "the last round has no backbone step");
+    assert!(same(&before, &snapshot(&source.vs)), "the source backbone changed");
+    assert!(source.neural_mesh.vertex_features.equal(&c_before), "the source vertex features changed");
+    assert!(!same(&before, &snapshot(&adapted.vs)), "the adapted backbone was not trained");
+    let trained = adapted.rounds[0].images_trained;
+    assert_eq!(adapted.backbone_steps, trained.div_ceil(3));
+    let c = &adapted.neural_mesh.vertex_features;
+    assert!(!c.equal(&c_before));
+    let norms = c.norm_scalaropt_dim(2, [1], false);
+    assert!(f64::try_from((norms - 1.0).abs().max()).unwrap() < 1e-5, "vertex features stay unit vectors");
+    assert_eq!(adapted.pseudo_poses.len(), 6);
+}
+
+#[test]
+fn nothing_fires_above_a_cosine_of_one_so_nothing_changes() {
+    let source = random_model("nofire");
+    let before = snapshot(&source.vs);
+    let adapted = adapt::adapt(&source, &images(4), &config(1.0), &mut |_| ControlFlow::Continue(())).unwrap();
+    for r in &adapted.rounds {
+        assert_eq!((r.fired_ratio, r.vertices_updated, r.images_trained), (0.0, 0.0, 0));
+    }
+    assert_eq!(adapted.backbone_steps, 0);
+    assert!(same(&before, &snapshot(&adapted.vs)));
+    assert!(adapted.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features));
+}
+
+#[test]
+fn the_global_filter_drops_images_below_omega() {
+    let source = random_model("global");
+    // With τ = −1 every vertex fires: Ω = 1 passes every image ...
+    let all = AdaptConfig { selection: Selection::Global(1.0), max_rounds: 1, ..config(-1.0) };
+    let a = adapt::adapt(&source, &images(4), &all, &mut |_| ControlFlow::Continue(())).unwrap();
+    assert_eq!(a.rounds[0].images_selected, 4);
+    // ... and with τ = 1 nothing fires, so Ω = 0.5 passes none.
+    let none = AdaptConfig { selection: Selection::Global(0.5), max_rounds: 1, ..config(1.0) };
+    let b = adapt::adapt(&source, &images(4), &none, &mut |_| ControlFlow::Continue(())).unwrap();
+    assert_eq!((b.rounds[0].images_selected, b.rounds[0].vertices_updated), (0, 0.0));
+}
+
+#[test]
+fn cancelling_stops_the_run() {
+    let source = random_model("cancel");
+    let mut seen = 0;
+    let err = adapt::adapt(&source, &images(4), &config(-1.0), &mut |e| {
+        seen += 1;
+        if matches!(e, Event::Step { phase: Phase::VertexUpdate, .. }) {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
+    })
+    .err()
+    .unwrap();
+    assert_eq!(err, EngineError::Cancelled);
+    assert!(seen >= 2);
+}
+
+#[test]
+fn the_oracle_takes_exactly_its_budget() {
+    let source = random_model("oracle");
+    let poses: Vec<Pose> = (0..5).map(|i| Pose::new(0.5 * i as f64, 0.2, 0.0, 5.0)).collect();
+    // 5 images in batches of 3: 2 steps per pass, so 5 steps take 3 passes.
+    let tuned =
+        adapt::finetune(&source, &images(5), &poses, 5, &config(0.8), &mut |_| ControlFlow::Continue(())).unwrap();
+    assert_eq!((tuned.backbone_steps, tuned.rounds.len()), (5, 3));
+    assert!(!tuned.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features), "C trains with labels");
+    let wrong = adapt::finetune(&source, &images(5), &poses[..4], 5, &config(0.8), &mut |_| ControlFlow::Continue(()));
+    assert!(matches!(wrong, Err(EngineError::InvalidInput(m)) if m.contains("4 poses for 5 images")));
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let source = random_model("bad");
+    let go = &mut |_: Event| ControlFlow::Continue(());
+    let wrong_size = Tensor::rand([2, 3, 64, 128], (Kind::Float, Device::Cpu));
+    assert!(
+        matches!(adapt::adapt(&source, &wrong_size, &config(0.8), go), Err(EngineError::InvalidInput(m)) if m.contains("N×3×64×160"))
+    );
+    let empty = Tensor::zeros([0, 3, 64, 160], (Kind::Float, Device::Cpu));
+    assert!(adapt::adapt(&source, &empty, &config(0.8), go).is_err());
+    let bad = AdaptConfig { alpha: 1.5, ..config(0.8) };
+    assert!(adapt::adapt(&source, &images(2), &bad, go).is_err());
+}

@@ -1,0 +1,313 @@
+//! `udapose-lab adapt` (3DUDA from an image folder, no labels) and `udapose-lab finetune` (the
+//! supervised oracle on a labelled split, with the adaptation's budget).
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+use tch::Tensor;
+use udapose_engine::adapt::{self, AdaptConfig, Adapted, Event, Selection, Threshold};
+use udapose_engine::checkpoint::{self, Manifest, Model};
+use udapose_engine::runtime::RuntimeInfo;
+use udapose_lab::datasets::syncar::SyncarSplit;
+use udapose_lab::loader::{load_image_folder, load_sample};
+
+/// Settings shared by `adapt` and `finetune` (defaults: [`AdaptConfig::default`]).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct Knobs {
+    /// Backbone learning rate (Adam).
+    #[arg(long)]
+    lr: Option<f64>,
+    /// EMA weight α of the old vertex feature.
+    #[arg(long)]
+    alpha: Option<f64>,
+    /// ψ: minimum share of an image's visible vertices that must fire.
+    #[arg(long)]
+    min_fired_ratio: Option<f64>,
+    /// A fixed cosine threshold for every vertex instead of the source statistics τ_r.
+    #[arg(long)]
+    fixed_threshold: Option<f64>,
+    /// The ablation: use an image only if at least this share (Ω, e.g. 0.5) of its visible
+    /// vertices fire, then with all of them.
+    #[arg(long)]
+    global_filter: Option<f64>,
+    /// At most this many EM rounds.
+    #[arg(long)]
+    max_rounds: Option<usize>,
+    /// Images per backbone step.
+    #[arg(long)]
+    batch: Option<usize>,
+    /// Vertex updates only (no backbone fine-tuning).
+    #[arg(long)]
+    no_backbone: bool,
+    /// Re-estimate κ_r from the fired features.
+    #[arg(long)]
+    reestimate_kappa: bool,
+    #[arg(long)]
+    seed: Option<u64>,
+}
+
+impl Knobs {
+    pub fn config(&self) -> AdaptConfig {
+        let mut c = AdaptConfig::default();
+        c.lr = self.lr.unwrap_or(c.lr);
+        c.alpha = self.alpha.unwrap_or(c.alpha);
+        c.min_fired_ratio = self.min_fired_ratio.unwrap_or(c.min_fired_ratio);
+        c.max_rounds = self.max_rounds.unwrap_or(c.max_rounds);
+        c.batch = self.batch.unwrap_or(c.batch);
+        c.seed = self.seed.unwrap_or(c.seed);
+        c.update_backbone = !self.no_backbone;
+        c.reestimate_kappa = self.reestimate_kappa;
+        if let Some(t) = self.fixed_threshold {
+            c.threshold = Threshold::Fixed(t);
+        }
+        if let Some(omega) = self.global_filter {
+            c.selection = Selection::Global(omega);
+        }
+        c
+    }
+}
+
+#[derive(clap::Args)]
+pub struct AdaptArgs {
+    /// The source model directory (never modified).
+    #[arg(long)]
+    model: PathBuf,
+    /// A folder of target-domain images (detection crops at the model's crop size); nothing
+    /// else is read, so no annotation can leak in.
+    #[arg(long)]
+    images: PathBuf,
+    /// The new model directory (must not exist).
+    #[arg(long)]
+    out: PathBuf,
+    /// Version name of the new model (default: the name of `--out`).
+    #[arg(long)]
+    version: Option<String>,
+    #[command(flatten)]
+    knobs: Knobs,
+}
+
+#[derive(clap::Args)]
+pub struct FinetuneArgs {
+    /// The source model directory (never modified).
+    #[arg(long)]
+    model: PathBuf,
+    /// A labelled split directory, e.g. data/syncar-ood-standard/combined/adapt.
+    #[arg(long)]
+    data: PathBuf,
+    /// The new model directory (must not exist).
+    #[arg(long)]
+    out: PathBuf,
+    /// Backbone optimiser steps (the budget).
+    #[arg(long, conflicts_with = "budget_of")]
+    steps: Option<usize>,
+    /// Take the budget from an adapted model's manifest (its backbone steps).
+    #[arg(long)]
+    budget_of: Option<PathBuf>,
+    #[arg(long)]
+    version: Option<String>,
+    #[command(flatten)]
+    knobs: Knobs,
+}
+
+pub fn run_adapt(args: &AdaptArgs) -> Result<()> {
+    adapt_folder(&args.model, &args.images, &args.out, args.version.as_deref(), &args.knobs.config())?;
+    Ok(())
+}
+
+pub fn run_finetune(args: &FinetuneArgs) -> Result<()> {
+    let steps = match (args.steps, &args.budget_of) {
+        (Some(s), _) => s,
+        (None, Some(dir)) => backbone_steps(dir)?,
+        (None, None) => bail!("give the budget: --steps N or --budget-of ADAPTED_MODEL"),
+    };
+    finetune_split(&args.model, &args.data, &args.out, steps, args.version.as_deref(), &args.knobs.config())?;
+    Ok(())
+}
+
+/// The backbone steps an adapted model's run took (its manifest's `training.backbone_steps`).
+pub fn backbone_steps(model: &Path) -> Result<usize> {
+    let text = std::fs::read_to_string(model.join(checkpoint::MANIFEST))
+        .with_context(|| format!("reading {}", model.join(checkpoint::MANIFEST).display()))?;
+    let m: serde_json::Value = serde_json::from_str(&text)?;
+    m["training"]["backbone_steps"]
+        .as_u64()
+        .map(|s| s as usize)
+        .with_context(|| format!("{}: no training.backbone_steps (not an adapted model?)", model.display()))
+}
+
+/// Adapts `model` on the images of `dir`; writes `out`. Returns the run's summary (JSON).
+pub fn adapt_folder(
+    model: &Path,
+    dir: &Path,
+    out: &Path,
+    version: Option<&str>,
+    config: &AdaptConfig,
+) -> Result<serde_json::Value> {
+    refuse_existing(out)?;
+    let source = load(model)?;
+    let [h, w] = source.manifest.crop;
+    let (pixels, names) = load_image_folder(dir, h, w)?;
+    let images = Tensor::from_slice(&pixels).reshape([names.len() as i64, 3, h as i64, w as i64]);
+    eprintln!("adapting {} on {} images of {}", source.manifest.version, names.len(), dir.display());
+    let started = Instant::now();
+    let adapted = adapt::adapt(&source, &images, config, &mut reporter(config.max_rounds))?;
+    let seconds = started.elapsed().as_secs_f64();
+    let summary = json!({
+        "kind": "3duda",
+        "images": dir.display().to_string(),
+        "n_images": names.len(),
+        "seconds": seconds,
+        "rounds": adapted.rounds,
+        "converged": adapted.converged,
+        "backbone_steps": adapted.backbone_steps,
+        "fired_ratio_before": adapted.rounds.first().map(|r| r.fired_ratio_before),
+        "fired_ratio_after": adapted.rounds.last().map(|r| r.fired_ratio),
+    });
+    save(&source, adapted, out, version, config, summary.clone())?;
+    eprintln!("saved {} after {seconds:.0} s", out.display());
+    Ok(summary)
+}
+
+/// Fine-tunes `model` with the labels of the split directory `split_dir`
+/// (`<root>/<domain>/<split>`), `steps` backbone steps; writes `out`.
+pub fn finetune_split(
+    model: &Path,
+    split_dir: &Path,
+    out: &Path,
+    steps: usize,
+    version: Option<&str>,
+    config: &AdaptConfig,
+) -> Result<serde_json::Value> {
+    refuse_existing(out)?;
+    let split = open_split_dir(split_dir)?;
+    let source = load(model)?;
+    let [h, w] = source.manifest.crop;
+    let mut pixels = Vec::new();
+    let mut poses = Vec::new();
+    for i in 0..split.len() {
+        let (p, pose, ih, iw, name) = load_sample(&split, i)?;
+        if (ih, iw) != (h, w) {
+            bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
+        }
+        pixels.extend(p);
+        poses.push(pose);
+    }
+    let images = Tensor::from_slice(&pixels).reshape([poses.len() as i64, 3, h as i64, w as i64]);
+    eprintln!("oracle: fine-tuning {} with labels on {} images, {steps} steps", source.manifest.version, poses.len());
+    let started = Instant::now();
+    let tuned = adapt::finetune(&source, &images, &poses, steps, config, &mut reporter(0))?;
+    let seconds = started.elapsed().as_secs_f64();
+    let summary = json!({
+        "kind": "oracle",
+        "data": split_dir.display().to_string(),
+        "n_images": poses.len(),
+        "seconds": seconds,
+        "backbone_steps": tuned.backbone_steps,
+        "rounds": tuned.rounds,
+    });
+    save(&source, tuned, out, version, config, summary.clone())?;
+    eprintln!("saved {} after {seconds:.0} s", out.display());
+    Ok(summary)
+}
+
+/// `<root>/<domain...>/<split>` → the split (domains may be nested: `corrupt/fog`).
+fn open_split_dir(dir: &Path) -> Result<SyncarSplit> {
+    let mut root = dir.to_path_buf();
+    let mut parts = Vec::new();
+    while let Some(parent) = root.parent().map(Path::to_path_buf) {
+        parts.push(root.file_name().unwrap_or_default().to_string_lossy().into_owned());
+        root = parent;
+        if root.join("manifest.json").is_file() {
+            break;
+        }
+    }
+    if parts.len() < 2 || !root.join("manifest.json").is_file() {
+        bail!("{} is not a split directory of a SynCar-OOD dataset (<root>/<domain>/<split>)", dir.display());
+    }
+    parts.reverse();
+    let split = parts.pop().unwrap_or_default();
+    SyncarSplit::open(&root, &parts.join("/"), &split).with_context(|| format!("opening {}", dir.display()))
+}
+
+fn refuse_existing(out: &Path) -> Result<()> {
+    if out.exists() {
+        bail!("{} already exists (model versions are immutable)", out.display());
+    }
+    Ok(())
+}
+
+fn load(model: &Path) -> Result<Model> {
+    let device = RuntimeInfo::detect().device();
+    checkpoint::load(model, device).with_context(|| format!("loading {}", model.display()))
+}
+
+fn save(
+    source: &Model,
+    adapted: Adapted,
+    out: &Path,
+    version: Option<&str>,
+    config: &AdaptConfig,
+    summary: serde_json::Value,
+) -> Result<()> {
+    let version = match version {
+        Some(v) => v.to_string(),
+        None => out.file_name().and_then(|n| n.to_str()).context("--out has no file name")?.to_string(),
+    };
+    let manifest = Manifest {
+        version,
+        training: json!({
+            "command": std::env::args().collect::<Vec<_>>().join(" "),
+            "commit": crate::synth_cmd::git_commit(),
+            "source_version": source.manifest.version,
+            "source_training": source.manifest.training,
+            "config": config,
+            "backbone_steps": adapted.backbone_steps,
+            "run": summary,
+        }),
+        metrics: serde_json::Value::Null,
+        files: Default::default(),
+        ..source.manifest.clone()
+    };
+    checkpoint::save(out, &manifest, &adapted.vs, &adapted.neural_mesh)?;
+    Ok(())
+}
+
+/// A progress bar per phase and one log line per round.
+fn reporter(max_rounds: usize) -> impl FnMut(Event) -> ControlFlow<()> {
+    let style = ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {elapsed} eta {eta}")
+        .expect("valid template")
+        .progress_chars("=> ");
+    let mut bar: Option<(ProgressBar, String)> = None;
+    move |event| {
+        match event {
+            Event::Step { round, phase, done, total } => {
+                let prefix = if max_rounds > 0 {
+                    format!("round {round}/{max_rounds} {phase:?}")
+                } else {
+                    format!("pass {round} {phase:?}")
+                };
+                if bar.as_ref().is_none_or(|(_, p)| *p != prefix) {
+                    if let Some((b, _)) = bar.take() {
+                        b.finish_and_clear();
+                    }
+                    let b = ProgressBar::new(total as u64).with_style(style.clone()).with_prefix(prefix.clone());
+                    bar = Some((b, prefix));
+                }
+                if let Some((b, _)) = &bar {
+                    b.set_position(done as u64);
+                }
+            }
+            Event::Round(r) => {
+                if let Some((b, _)) = bar.take() {
+                    b.finish_and_clear();
+                }
+                eprintln!("round {}: {}", r.round, serde_json::to_string(r).unwrap_or_default());
+            }
+        }
+        ControlFlow::Continue(())
+    }
+}

@@ -1,0 +1,151 @@
+//! 3DUDA on the quick profile, end to end through `udapose-lab report`: adapt, oracle and the
+//! global-filter ablation on `combined`, their evaluations, the report's schema and figures;
+//! plus the commands' clear errors.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+
+const LAB: &str = env!("CARGO_BIN_EXE_udapose-lab");
+
+fn env_path(var: &str) -> PathBuf {
+    PathBuf::from(std::env::var_os(var).unwrap_or_else(|| panic!("{var} is set by `make test`")))
+}
+
+fn lab(args: &[&str]) -> (bool, String) {
+    let out = Command::new(LAB).args(args).output().expect("run udapose-lab");
+    (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("udapose-adapt-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn read(path: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn digest(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
+        .collect();
+    files.sort();
+    files
+}
+
+#[test]
+fn quick_report_adapts_combined_without_losing_accuracy() {
+    let (data, source) = (env_path("UDAPOSE_QUICK_DATA"), env_path("UDAPOSE_QUICK_MODEL"));
+    let before = digest(&source);
+    let work = tmp("report");
+    let out = work.join("reports/syncar-ood.json");
+    let (ok, log) = lab(&[
+        "report",
+        "--profile",
+        "quick",
+        "--data",
+        data.to_str().unwrap(),
+        "--source",
+        source.to_str().unwrap(),
+        "--work",
+        work.to_str().unwrap(),
+        "--domains",
+        "combined",
+        "--ablation",
+        "combined",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "report failed:\n{log}");
+    assert_eq!(before, digest(&source), "the source model directory changed");
+
+    let report = read(&out);
+    assert_eq!(report["profile"], "quick");
+    let d = &report["domains"]["combined"];
+    for v in ["source", "adapted", "oracle", "global_filter"] {
+        let m = &d[v];
+        assert_eq!(m["n"], 60, "{v}");
+        for k in ["acc_pi_6", "acc_pi_18", "med_err_deg"] {
+            assert!(m[k].is_number() && m[format!("{k}_ci")].is_array(), "{v}.{k}");
+        }
+    }
+    assert!(d["gap_closed"].is_number() || d["gap_closed"].is_null());
+    assert!(d["adapt_seconds"].as_f64().unwrap() > 0.0);
+
+    // The fired-vertex ratio rises over the run, and the adapted model is at least as accurate.
+    let manifest = read(&work.join("adapted/combined/manifest.json"));
+    let run = &manifest["training"]["run"];
+    let (first, last) = (run["fired_ratio_before"].as_f64().unwrap(), run["fired_ratio_after"].as_f64().unwrap());
+    assert!(last > first, "fired ratio {first:.3} → {last:.3}");
+    let acc = |v: &str| d[v]["acc_pi_6"].as_f64().unwrap();
+    assert!(acc("adapted") >= acc("source"), "adapted {:.3} < source {:.3}", acc("adapted"), acc("source"));
+    assert_eq!(manifest["training"]["source_version"], read(&source.join("manifest.json"))["version"]);
+
+    // The oracle had the adaptation's budget.
+    let oracle = read(&work.join("oracle/combined/manifest.json"));
+    assert_eq!(oracle["training"]["backbone_steps"], manifest["training"]["backbone_steps"]);
+
+    let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
+    assert!(md.contains("| combined |") && md.contains("gap closed"));
+    for png in ["fired-polar-combined.png", "errors-combined.png"] {
+        let img = image::open(work.join("reports/syncar-ood").join(png)).unwrap();
+        assert!(img.width() > 100 && img.height() > 100);
+    }
+
+    // Cached: a second run starts no stage and writes the same numbers.
+    let (ok, log) = lab(&[
+        "report",
+        "--profile",
+        "quick",
+        "--data",
+        data.to_str().unwrap(),
+        "--source",
+        source.to_str().unwrap(),
+        "--work",
+        work.to_str().unwrap(),
+        "--domains",
+        "combined",
+        "--ablation",
+        "combined",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok && !log.contains("=="), "{log}");
+    assert_eq!(read(&out)["domains"], report["domains"]);
+}
+
+#[test]
+fn adapt_and_finetune_explain_bad_arguments() {
+    let (data, source) = (env_path("UDAPOSE_QUICK_DATA"), env_path("UDAPOSE_QUICK_MODEL"));
+    let dir = tmp("bad");
+    std::fs::create_dir_all(dir.join("empty")).unwrap();
+    let s = source.to_str().unwrap();
+    let out = dir.join("out");
+    let o = out.to_str().unwrap();
+
+    let (ok, log) = lab(&["adapt", "--model", s, "--images", dir.join("empty").to_str().unwrap(), "--out", o]);
+    assert!(!ok && log.contains("holds no PNG, JPEG or WebP image"), "{log}");
+
+    // Images of another size than the model's crop.
+    let big = dir.join("big");
+    std::fs::create_dir_all(&big).unwrap();
+    image::RgbImage::new(320, 128).save(big.join("a.png")).unwrap();
+    let (ok, log) = lab(&["adapt", "--model", s, "--images", big.to_str().unwrap(), "--out", o]);
+    assert!(!ok && log.contains("320x128") && log.contains("160x64"), "{log}");
+
+    // An existing output is never overwritten.
+    let (ok, log) = lab(&["adapt", "--model", s, "--images", big.to_str().unwrap(), "--out", s]);
+    assert!(!ok && log.contains("already exists"), "{log}");
+
+    let split = data.join("combined/adapt");
+    let (ok, log) = lab(&["finetune", "--model", s, "--data", split.to_str().unwrap(), "--out", o]);
+    assert!(!ok && log.contains("--steps N or --budget-of"), "{log}");
+    let (ok, log) = lab(&["finetune", "--model", s, "--data", dir.to_str().unwrap(), "--out", o, "--steps", "1"]);
+    assert!(!ok && log.contains("not a split directory"), "{log}");
+    assert!(!out.exists());
+}
