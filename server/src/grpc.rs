@@ -1,64 +1,309 @@
-//! gRPC API (tonic): udapose.v1.ModelService, grpc.health.v1 and reflection.
+//! gRPC API (tonic): udapose.v1.PoseService and ModelService, grpc.health.v1 and reflection.
 
-use std::{future::Future, sync::Arc};
+use std::{collections::HashMap, future::Future, pin::Pin, sync::Arc, time::Duration};
 
 use anyhow::{Context, Result};
-use tokio::net::TcpListener;
+use tokio::{net::TcpListener, sync::mpsc};
+use tokio_stream::{Stream, StreamExt, wrappers::ReceiverStream};
 use tonic::{
-    Request, Response, Status,
-    transport::{Server, server::TcpIncoming},
+    Request, Response, Status, Streaming,
+    codegen::http::{self, HeaderValue},
+    transport::{Server, ServerTlsConfig, server::TcpIncoming},
 };
+use tonic_types::{ErrorDetails, StatusExt};
 use udapose_proto::v1::{
-    ListModelsRequest, ListModelsResponse, ModelInfo,
+    self as pb, DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, ListModelsResponse,
+    ModelDescription, ModelInfo,
+    estimate_request::Input,
     model_service_server::{ModelService, ModelServiceServer},
+    pose_service_server::{PoseService, PoseServiceServer},
 };
 
-use crate::catalog::{Catalog, ModelEntry};
+use crate::{
+    api::{EstimateAnswer, EstimateInput, ImageInput, PoseAnswer},
+    auth::Role,
+    error::ApiError,
+    registry::Category,
+    service::Service,
+};
 
 /// Serves until `stop` resolves, then lets in-flight calls finish.
 pub async fn serve(
     listener: TcpListener,
-    catalog: Arc<Catalog>,
-    max_request_bytes: usize,
+    service: Arc<Service>,
+    tls: Option<ServerTlsConfig>,
     stop: impl Future<Output = ()>,
 ) -> Result<()> {
-    // The overall ("") status starts SERVING: it reports liveness, while
-    // readiness (models loaded) is HTTP /readyz.
+    // The overall ("") status reports liveness; readiness (models loaded) is HTTP /readyz.
     let (health, health_service) = tonic_health::server::health_reporter();
-    health.set_serving::<ModelServiceServer<Models>>().await;
+    health.set_serving::<ModelServiceServer<Api>>().await;
+    health.set_serving::<PoseServiceServer<Api>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(udapose_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .context("building the gRPC reflection service")?;
+    let max = service.limits.max_request_bytes;
+    let api = Api { service };
     // tonic's default decoding limit (4 MiB) is below the documented 16 MiB.
-    let models = ModelServiceServer::new(Models { catalog }).max_decoding_message_size(max_request_bytes);
+    let models = ModelServiceServer::new(api.clone()).max_decoding_message_size(max);
+    let poses = PoseServiceServer::new(api).max_decoding_message_size(max);
 
-    Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = tls {
+        builder = builder.tls_config(tls).context("configuring gRPC TLS")?;
+    }
+    builder
+        .layer(tower::util::MapResponseLayer::new(too_large_is_resource_exhausted))
         .add_service(health_service)
         .add_service(reflection)
         .add_service(models)
+        .add_service(poses)
         .serve_with_incoming_shutdown(TcpIncoming::from(listener), stop)
         .await
         .context("serving gRPC")
 }
 
-struct Models {
-    catalog: Arc<Catalog>,
+/// tonic refuses an oversized message with OUT_OF_RANGE; the contract says RESOURCE_EXHAUSTED.
+fn too_large_is_resource_exhausted<B>(mut response: http::Response<B>) -> http::Response<B> {
+    let headers = response.headers_mut();
+    let out_of_range = headers.get("grpc-status").is_some_and(|s| s == "11");
+    let too_large = headers
+        .get("grpc-message")
+        .and_then(|m| m.to_str().ok())
+        .is_some_and(|m| m.contains("too%20large") || m.contains("too large"));
+    if out_of_range && too_large {
+        headers.insert("grpc-status", HeaderValue::from_static("8"));
+    }
+    response
 }
 
-#[tonic::async_trait]
-impl ModelService for Models {
-    async fn list_models(&self, _request: Request<ListModelsRequest>) -> Result<Response<ListModelsResponse>, Status> {
-        let models = self.catalog.models().iter().map(to_proto).collect();
-        Ok(Response::new(ListModelsResponse { models }))
+#[derive(Clone)]
+struct Api {
+    service: Arc<Service>,
+}
+
+impl Api {
+    fn authorize<T>(&self, request: &Request<T>, role: Role) -> Result<(), Status> {
+        let header = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
+        self.service.tokens.check(header, role).map_err(|e| self.refuse(e, "grpc"))
+    }
+
+    /// A status for `e`, counted in the metrics (estimates count their own).
+    fn refuse(&self, e: ApiError, transport: &str) -> Status {
+        self.service.metrics.requests.with_label_values(&[transport, e.code_name()]).inc();
+        self.service.metrics.errors.with_label_values(&[e.code_name()]).inc();
+        to_status(&e)
     }
 }
 
-fn to_proto(entry: &ModelEntry) -> ModelInfo {
+/// The status with ErrorInfo (reason = the code name) and, when overloaded, RetryInfo.
+pub fn to_status(e: &ApiError) -> Status {
+    let mut details = ErrorDetails::new();
+    details.set_error_info(e.code_name(), "udapose", HashMap::<String, String>::new());
+    if let Some(after) = e.retry_after() {
+        details.set_retry_info(Some(after));
+    }
+    Status::with_error_details(e.grpc_code(), e.to_string(), details)
+}
+
+type EstimateStream = Pin<Box<dyn Stream<Item = Result<EstimateResponse, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl PoseService for Api {
+    async fn estimate(&self, request: Request<EstimateRequest>) -> Result<Response<EstimateResponse>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let deadline = grpc_timeout(request.metadata());
+        let input = to_input(request.into_inner(), deadline).map_err(|e| self.refuse(e, "grpc"))?;
+        let answer = self.service.estimate(input, "grpc").await.map_err(|e| to_status(&e))?;
+        Ok(Response::new(to_response(answer)))
+    }
+
+    type EstimateStreamStream = EstimateStream;
+
+    async fn estimate_stream(
+        &self,
+        request: Request<Streaming<EstimateRequest>>,
+    ) -> Result<Response<Self::EstimateStreamStream>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let mut frames = request.into_inner();
+        let (tx, rx) = mpsc::channel(4);
+        let service = self.service.clone();
+        tokio::spawn(async move {
+            // Frames are answered in order, one at a time: a stream is one camera.
+            while let Some(frame) = frames.next().await {
+                let frame = match frame {
+                    Ok(f) => f,
+                    Err(status) => {
+                        let _ = tx.send(Err(status)).await;
+                        break;
+                    }
+                };
+                let frame_id = frame.frame_id.clone();
+                let result = match to_input(frame, None) {
+                    Ok(input) => service.estimate(input, "grpc-stream").await,
+                    Err(e) => Err(e),
+                };
+                let response = match result {
+                    Ok(answer) => to_response(answer),
+                    Err(e) => EstimateResponse {
+                        frame_id,
+                        error: Some(pb::ErrorStatus { code: e.grpc_code() as i32, message: e.to_string() }),
+                        ..Default::default()
+                    },
+                };
+                if tx.send(Ok(response)).await.is_err() {
+                    break; // the client went away
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+}
+
+#[tonic::async_trait]
+impl ModelService for Api {
+    async fn list_models(&self, request: Request<ListModelsRequest>) -> Result<Response<ListModelsResponse>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let models = self.service.registry.categories().map(|c| model_info(c)).collect();
+        Ok(Response::new(ListModelsResponse { models }))
+    }
+
+    async fn describe_model(
+        &self,
+        request: Request<DescribeModelRequest>,
+    ) -> Result<Response<ModelDescription>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let category = self.service.category(&request.get_ref().category).map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(describe(category)))
+    }
+}
+
+pub fn model_info(c: &Category) -> ModelInfo {
     ModelInfo {
-        category: entry.category.clone(),
-        version: entry.version.clone().unwrap_or_default(),
-        ready: entry.ready,
+        category: c.name.clone(),
+        version: c.active().map(|a| a.version.clone()).unwrap_or_default(),
+        ready: c.ready(),
+    }
+}
+
+pub fn describe(c: &Category) -> ModelDescription {
+    let mut d =
+        ModelDescription { info: Some(model_info(c)), error: c.error().unwrap_or_default(), ..Default::default() };
+    if let Some(a) = c.active() {
+        let m = &a.manifest;
+        d.generation = a.generation;
+        d.trained_as = m.version.clone();
+        d.backbone = m.backbone.name().to_string();
+        d.feature_dim = m.feature_dim as u32;
+        d.vertices = m.vertices as u32;
+        d.crop_height = m.crop[0] as u32;
+        d.crop_width = m.crop[1] as u32;
+        d.cuboid = m.cuboid.min.iter().chain(&m.cuboid.max).copied().collect();
+        d.manifest_json = serde_json::to_string(m).unwrap_or_default();
+    }
+    d
+}
+
+fn to_input(r: EstimateRequest, timeout: Option<Duration>) -> Result<EstimateInput, ApiError> {
+    let image = match r.input {
+        Some(Input::Image(bytes)) => ImageInput::Encoded(bytes.into()),
+        Some(Input::Raw(raw)) => ImageInput::Raw { width: raw.width, height: raw.height, rgb8: raw.rgb8.into() },
+        None => return Err(ApiError::InvalidArgument("the request has no image (set image or raw)".into())),
+    };
+    let from_options = r.options.map(|o| o.timeout_ms).filter(|&t| t > 0).map(|t| Duration::from_millis(t.into()));
+    let timeout = match (timeout, from_options) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    };
+    Ok(EstimateInput {
+        category: r.category,
+        image,
+        boxes: r.boxes.iter().map(|b| [b.x0, b.y0, b.x1, b.y1]).collect(),
+        frame_id: r.frame_id,
+        timeout,
+    })
+}
+
+/// The `grpc-timeout` header (`<digits><unit>`, unit one of H M S m u n).
+fn grpc_timeout(metadata: &tonic::metadata::MetadataMap) -> Option<Duration> {
+    let value = metadata.get("grpc-timeout")?.to_str().ok()?;
+    let (digits, unit) = value.split_at(value.len().checked_sub(1)?);
+    let n: u64 = digits.parse().ok()?;
+    Some(match unit {
+        "H" => Duration::from_secs(n.saturating_mul(3600)),
+        "M" => Duration::from_secs(n.saturating_mul(60)),
+        "S" => Duration::from_secs(n),
+        "m" => Duration::from_millis(n),
+        "u" => Duration::from_micros(n),
+        "n" => Duration::from_nanos(n),
+        _ => return None,
+    })
+}
+
+fn to_response(a: EstimateAnswer) -> EstimateResponse {
+    let t = a.timings;
+    EstimateResponse {
+        estimates: a.estimates.into_iter().map(to_estimate).collect(),
+        model_version: a.model_version,
+        frame_id: a.frame_id,
+        timings: Some(pb::Timings {
+            decode_ms: t.decode_ms,
+            queue_ms: t.queue_ms,
+            crop_ms: t.crop_ms,
+            backbone_ms: t.backbone_ms,
+            solver_ms: t.solver_ms,
+            total_ms: t.total_ms,
+            batch_size: t.batch_size,
+        }),
+        error: None,
+    }
+}
+
+fn to_estimate(p: PoseAnswer) -> pb::PoseEstimate {
+    let b = p.crop_box;
+    pb::PoseEstimate {
+        azimuth: p.azimuth,
+        elevation: p.elevation,
+        theta: p.theta,
+        azimuth_deg: p.azimuth_deg,
+        elevation_deg: p.elevation_deg,
+        theta_deg: p.theta_deg,
+        distance: p.distance,
+        rotation: p.rotation,
+        score: p.score,
+        hypotheses: p
+            .hypotheses
+            .into_iter()
+            .map(|h| pb::Hypothesis {
+                azimuth: h.azimuth,
+                elevation: h.elevation,
+                theta: h.theta,
+                distance: h.distance,
+                score: h.score,
+            })
+            .collect(),
+        crop_box: Some(pb::BoundingBox { x0: b.x0, y0: b.y0, x1: b.x1, y1: b.y1 }),
+        cuboid: p.cuboid,
+        model_version: p.model_version,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grpc_timeouts_parse() {
+        let mut m = tonic::metadata::MetadataMap::new();
+        assert_eq!(grpc_timeout(&m), None);
+        for (v, d) in
+            [("250m", Duration::from_millis(250)), ("3S", Duration::from_secs(3)), ("2M", Duration::from_secs(120))]
+        {
+            m.insert("grpc-timeout", v.parse().unwrap());
+            assert_eq!(grpc_timeout(&m), Some(d));
+        }
+        m.insert("grpc-timeout", "x".parse().unwrap());
+        assert_eq!(grpc_timeout(&m), None);
     }
 }

@@ -1,37 +1,96 @@
-//! HTTP API (axum): health, readiness and the model list.
+//! HTTP API (axum): pose estimation, models, health, readiness, metrics, the OpenAPI document
+//! and the web page. Estimates go through the same `Service` as gRPC.
 
-use std::{future::Future, sync::Arc};
+use std::{future::Future, sync::Arc, time::Duration};
 
 use anyhow::{Context, Result};
 use axum::{
     Json, Router,
-    extract::{DefaultBodyLimit, State},
-    http::StatusCode,
-    routing::get,
+    body::{Body, Bytes},
+    extract::{DefaultBodyLimit, FromRequest, Multipart, Path, RawQuery, Request, State},
+    http::{HeaderMap, HeaderValue, StatusCode, header},
+    response::{Html, IntoResponse, Response},
+    routing::{get, post},
 };
 use serde_json::{Value, json};
-use tokio::net::TcpListener;
 
-use crate::catalog::Catalog;
+use crate::{
+    api::{EstimateInput, ImageInput},
+    auth::Role,
+    error::ApiError,
+    grpc::{describe, model_info},
+    service::Service,
+    tls::Listener,
+};
+
+const INDEX_HTML: &str = include_str!("web/index.html");
 
 /// Serves until `stop` resolves, then lets in-flight requests finish.
 pub async fn serve(
-    listener: TcpListener,
-    catalog: Arc<Catalog>,
-    max_request_bytes: usize,
+    listener: Listener,
+    service: Arc<Service>,
     stop: impl Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
-    axum::serve(listener, router(catalog, max_request_bytes)).with_graceful_shutdown(stop).await.context("serving HTTP")
+    let app = router(service);
+    match listener {
+        Listener::Plain(l) => axum::serve(l, app).with_graceful_shutdown(stop).await,
+        Listener::Tls(l) => axum::serve(l, app).with_graceful_shutdown(stop).await,
+    }
+    .context("serving HTTP")
 }
 
-fn router(catalog: Arc<Catalog>, max_request_bytes: usize) -> Router {
+pub fn router(service: Arc<Service>) -> Router {
+    let limit = service.limits.max_request_bytes;
     Router::new()
+        .route("/", get(index))
+        .route("/openapi.json", get(openapi))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
         .route("/v1/models", get(list_models))
-        // axum's own default (2 MB) is below the documented 16 MiB.
-        .layer(DefaultBodyLimit::max(max_request_bytes))
-        .with_state(catalog)
+        .route("/v1/models/{category}", get(describe_model))
+        .route("/v1/pose/{category}", post(estimate))
+        .fallback(not_found)
+        // axum's own default (2 MB) is below the documented 16 MiB; multipart reads obey it.
+        .layer(DefaultBodyLimit::max(limit))
+        .with_state(service)
+}
+
+/// An error as JSON `{"error": {"code", "message"}}`, with `Retry-After` when overloaded.
+pub struct HttpError(pub ApiError);
+
+impl IntoResponse for HttpError {
+    fn into_response(self) -> Response {
+        let e = self.0;
+        let status = StatusCode::from_u16(e.http_status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
+        let body = Json(json!({ "error": { "code": e.code_name(), "message": e.to_string() } }));
+        let mut response = (status, body).into_response();
+        if let Some(after) = e.retry_after() {
+            let secs = after.as_secs().max(1).to_string();
+            response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_str(&secs).expect("digits"));
+        }
+        response
+    }
+}
+
+/// Counts an error that never reached the estimate path, and wraps it.
+fn refuse(service: &Service, e: ApiError) -> HttpError {
+    service.metrics.requests.with_label_values(&["http", e.code_name()]).inc();
+    service.metrics.errors.with_label_values(&[e.code_name()]).inc();
+    HttpError(e)
+}
+
+fn authorize(service: &Service, headers: &HeaderMap, role: Role) -> Result<(), HttpError> {
+    let value = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
+    service.tokens.check(value, role).map_err(|e| refuse(service, e))
+}
+
+async fn index() -> Html<&'static str> {
+    Html(INDEX_HTML)
+}
+
+async fn openapi() -> Json<Value> {
+    Json(crate::openapi::document())
 }
 
 /// Liveness: the process answers; says nothing about models.
@@ -40,13 +99,210 @@ async fn healthz() -> Json<Value> {
 }
 
 /// Readiness: 200 only when every configured model is loaded.
-async fn readyz(State(catalog): State<Arc<Catalog>>) -> (StatusCode, Json<Value>) {
-    let readiness = catalog.readiness();
+async fn readyz(State(service): State<Arc<Service>>) -> (StatusCode, Json<Value>) {
+    let readiness = service.registry.readiness();
     let (code, status) =
         if readiness.ready { (StatusCode::OK, "ready") } else { (StatusCode::SERVICE_UNAVAILABLE, "not_ready") };
     (code, Json(json!({ "status": status, "reason": readiness.reason })))
 }
 
-async fn list_models(State(catalog): State<Arc<Catalog>>) -> Json<Value> {
-    Json(json!({ "models": catalog.models() }))
+async fn metrics(State(service): State<Arc<Service>>) -> impl IntoResponse {
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], service.metrics.render())
+}
+
+async fn not_found(State(service): State<Arc<Service>>) -> HttpError {
+    refuse(&service, ApiError::NotFound("no such route; see /openapi.json".into()))
+}
+
+async fn list_models(State(service): State<Arc<Service>>, headers: HeaderMap) -> Result<Json<Value>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let models: Vec<Value> = service
+        .registry
+        .categories()
+        .map(|c| {
+            let info = model_info(c);
+            let mut m = json!({
+                "category": info.category,
+                "version": (!info.version.is_empty()).then_some(info.version),
+                "ready": info.ready,
+            });
+            if let Some(e) = c.error() {
+                m["error"] = json!(e);
+            }
+            m
+        })
+        .collect();
+    Ok(Json(json!({ "models": models })))
+}
+
+async fn describe_model(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+) -> Result<Json<Value>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let category = service.category(&category).map_err(|e| refuse(&service, e))?;
+    let d = describe(category);
+    let info = d.info.unwrap_or_default();
+    let manifest: Value = serde_json::from_str(&d.manifest_json).unwrap_or(Value::Null);
+    Ok(Json(json!({
+        "category": info.category,
+        "version": info.version,
+        "ready": info.ready,
+        "generation": d.generation,
+        "trained_as": d.trained_as,
+        "backbone": d.backbone,
+        "feature_dim": d.feature_dim,
+        "vertices": d.vertices,
+        "crop_height": d.crop_height,
+        "crop_width": d.crop_width,
+        "cuboid": d.cuboid,
+        "error": d.error,
+        "manifest": manifest,
+    })))
+}
+
+/// `POST /v1/pose/{category}`: the image as the raw body (PNG, JPEG, WebP; raw RGB8 with
+/// `?width=&height=`) or as the `image` part of a multipart form. Query: `bbox=x0,y0,x1,y1`
+/// (repeatable), `frame_id`, `timeout_ms`.
+async fn estimate(
+    State(service): State<Arc<Service>>,
+    Path(category): Path<String>,
+    RawQuery(query): RawQuery,
+    request: Request,
+) -> Result<Json<crate::api::EstimateAnswer>, HttpError> {
+    authorize(&service, request.headers(), Role::Read)?;
+    let query = EstimateQuery::parse(query.as_deref().unwrap_or("")).map_err(|e| refuse(&service, e))?;
+    let bytes = read_image(&service, request).await.map_err(|e| refuse(&service, e))?;
+    let image = match (query.width, query.height) {
+        (Some(width), Some(height)) => ImageInput::Raw { width, height, rgb8: bytes },
+        (None, None) => ImageInput::Encoded(bytes),
+        _ => return Err(refuse(&service, ApiError::InvalidArgument("raw pixels need both width and height".into()))),
+    };
+    let input = EstimateInput { category, image, boxes: query.boxes, frame_id: query.frame_id, timeout: query.timeout };
+    service.estimate(input, "http").await.map(Json).map_err(HttpError)
+}
+
+/// The body, or the `image` (else first) part of a multipart form, within the size limit.
+async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiError> {
+    let limit = service.limits.max_request_bytes;
+    let too_large = || ApiError::TooLarge(format!("request body over the limit of {limit} bytes"));
+    let declared = request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit as u64) {
+        return Err(too_large());
+    }
+    let multipart = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("multipart/form-data"));
+    if !multipart {
+        let body: Body = request.into_body();
+        return axum::body::to_bytes(body, limit).await.map_err(|_| too_large());
+    }
+    let mut form = Multipart::from_request(request, &())
+        .await
+        .map_err(|e| ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text())))?;
+    let mut first = None;
+    loop {
+        let field = match form.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large()),
+            Err(e) => return Err(ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))),
+        };
+        let is_image = field.name() == Some("image");
+        let data = field.bytes().await.map_err(|e| {
+            if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                too_large()
+            } else {
+                ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))
+            }
+        })?;
+        if is_image {
+            return Ok(data);
+        }
+        first.get_or_insert(data);
+    }
+    first.ok_or_else(|| ApiError::InvalidArgument("the multipart form has no image part".into()))
+}
+
+#[derive(Debug, Default, PartialEq)]
+struct EstimateQuery {
+    boxes: Vec<[f64; 4]>,
+    width: Option<u32>,
+    height: Option<u32>,
+    frame_id: String,
+    timeout: Option<Duration>,
+}
+
+impl EstimateQuery {
+    fn parse(query: &str) -> Result<Self, ApiError> {
+        let bad = |what: &str, v: &str| ApiError::InvalidArgument(format!("bad {what} {v:?}"));
+        let mut q = EstimateQuery::default();
+        for pair in query.split('&').filter(|p| !p.is_empty()) {
+            let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+            let value = percent_decode(value);
+            match key {
+                "bbox" => {
+                    let v: Vec<f64> = value
+                        .split(',')
+                        .map(|x| x.trim().parse::<f64>())
+                        .collect::<Result<_, _>>()
+                        .map_err(|_| bad("bbox", &value))?;
+                    let b: [f64; 4] = v.try_into().map_err(|_| bad("bbox (want x0,y0,x1,y1)", &value))?;
+                    q.boxes.push(b);
+                }
+                "width" => q.width = Some(value.parse().map_err(|_| bad("width", &value))?),
+                "height" => q.height = Some(value.parse().map_err(|_| bad("height", &value))?),
+                "frame_id" => q.frame_id = value,
+                "timeout_ms" => {
+                    let ms: u64 = value.parse().map_err(|_| bad("timeout_ms", &value))?;
+                    q.timeout = Some(Duration::from_millis(ms));
+                }
+                _ => return Err(ApiError::InvalidArgument(format!("unknown query parameter {key:?}"))),
+            }
+        }
+        Ok(q)
+    }
+}
+
+/// `%XX` escapes and `+` as space; invalid escapes are kept as they are.
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let hex = |c: u8| (c as char).to_digit(16).map(|d| d as u8);
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let (Some(hi), Some(lo)) = (hex(b[i + 1]), hex(b[i + 2]))
+        {
+            out.push(hi * 16 + lo);
+            i += 3;
+            continue;
+        }
+        out.push(if b[i] == b'+' { b' ' } else { b[i] });
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn queries_parse_boxes_and_raw_sizes() {
+        let q = EstimateQuery::parse("bbox=1,2,30,40&bbox=5%2C6%2C70%2C80&width=4&height=3&frame_id=f+1&timeout_ms=50")
+            .unwrap();
+        assert_eq!(q.boxes, [[1.0, 2.0, 30.0, 40.0], [5.0, 6.0, 70.0, 80.0]]);
+        assert_eq!((q.width, q.height, q.frame_id.as_str()), (Some(4), Some(3), "f 1"));
+        assert_eq!(q.timeout, Some(Duration::from_millis(50)));
+        for bad in ["bbox=1,2,3", "bbox=a,b,c,d", "width=-1", "nope=1"] {
+            assert!(matches!(EstimateQuery::parse(bad), Err(ApiError::InvalidArgument(_))), "{bad}");
+        }
+        assert_eq!(percent_decode("a%2"), "a%2");
+        assert_eq!(percent_decode("%zz%41"), "%zzA");
+    }
 }

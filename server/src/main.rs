@@ -1,54 +1,154 @@
-//! `udapose-server`: serves the udapose API over gRPC and HTTP.
-//!
-//! Foundation stage: no model loader exists yet, so the server only discovers
-//! model directories, reports them as not loadable, and is never ready.
+//! `udapose-server`: serves pose estimates over gRPC and HTTP from a per-category model
+//! registry, with inference workers that batch requests (ARCHITECTURE.md).
 
-mod catalog;
+mod api;
+mod auth;
+mod decode;
+mod error;
 mod grpc;
 mod http;
+mod metrics;
+mod openapi;
+mod registry;
+mod service;
+mod store;
+mod tls;
+mod worker;
 
-use std::{net::SocketAddr, path::PathBuf, sync::Arc};
+use std::{net::SocketAddr, path::PathBuf, sync::Arc, time::Duration};
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Parser;
 use tokio::{net::TcpListener, sync::watch};
 use tracing_subscriber::EnvFilter;
 
-use crate::catalog::Catalog;
+use crate::{
+    auth::Tokens,
+    decode::DecodeLimits,
+    metrics::Metrics,
+    registry::Registry,
+    service::{Limits, Service},
+    store::Store,
+    tls::{Listener, TlsFiles, TlsListener},
+    worker::WorkerConfig,
+};
 
 /// udapose pose-estimation service: gRPC and HTTP on separate addresses.
-///
-/// This build cannot load models yet: it lists the model directories under
-/// --models, reports them as not loaded, and /readyz answers 503.
 #[derive(Debug, Parser)]
 #[command(version)]
 struct Args {
-    /// Address of the HTTP API (health, readiness, /v1/models).
+    /// Address of the HTTP API.
     #[arg(long, default_value = "127.0.0.1:8080")]
     http_addr: SocketAddr,
     /// Address of the gRPC API (udapose.v1, grpc.health.v1, reflection).
     #[arg(long, default_value = "127.0.0.1:50051")]
     grpc_addr: SocketAddr,
-    /// Directory holding one `<category>/manifest.json` per model.
+    /// Seed models: one `<category>/manifest.json` per model, imported read-only into the store.
     #[arg(long, value_name = "DIR", default_value = "models")]
     models: PathBuf,
+    /// The service's state (model versions and activation log); created if missing.
+    #[arg(long, value_name = "DIR", default_value = "state")]
+    store: PathBuf,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
     max_request_bytes: u64,
+    /// Largest decoded image width or height, in pixels.
+    #[arg(long, value_name = "PX", default_value_t = 8192)]
+    max_image_side: u32,
+    /// Inference worker threads per category (each holds its own model copy).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    workers: u32,
+    /// Most crops per backbone batch; 1 turns batching off (bit-identical answers).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=256))]
+    max_batch: u32,
+    /// How long the first request of a batch waits for others, in milliseconds.
+    #[arg(long, default_value_t = 5)]
+    max_delay_ms: u64,
+    /// Requests that may wait per category; beyond it: UNAVAILABLE / 503 at once.
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    queue_depth: u32,
+    /// How often to re-read the activation log for versions activated elsewhere (0: never).
+    #[arg(long, default_value_t = 5)]
+    poll_store_secs: u64,
+    /// Deadline of a request that brings none, in milliseconds.
+    #[arg(long, default_value_t = 30_000)]
+    timeout_ms: u64,
+    /// libtorch intra-op threads (0: one per core). Set once at start.
+    #[arg(long, default_value_t = 0)]
+    torch_threads: i32,
+    /// Bearer token with the admin role (required on everything but /, /openapi.json, health,
+    /// readiness and /metrics).
+    #[arg(long, env = "UDAPOSE_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// File of `<role> <token>` lines (roles: read, write, admin).
+    #[arg(long, value_name = "FILE")]
+    token_file: Option<PathBuf>,
+    /// Serve TLS on both listeners with this PEM certificate chain (needs --tls-key).
+    #[arg(long, value_name = "PEM", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Listen on non-loopback addresses without a token (otherwise refused).
+    #[arg(long)]
+    allow_unauthenticated: bool,
 }
 
 #[tokio::main]
 async fn main() -> Result<()> {
     init_tracing();
     let args = Args::parse();
-    let catalog = Arc::new(Catalog::scan(&args.models)?);
-    catalog.log_summary();
-    let max_bytes = usize::try_from(args.max_request_bytes).context("--max-request-bytes")?;
+    let tokens = Tokens::new(args.token.as_deref(), args.token_file.as_deref())?;
+    if !tokens.enabled() && !args.allow_unauthenticated {
+        for addr in [args.http_addr, args.grpc_addr] {
+            if !addr.ip().is_loopback() {
+                bail!(
+                    "{addr} is not loopback and no token is configured: set --token/--token-file, or pass --allow-unauthenticated"
+                );
+            }
+        }
+    }
+    if args.torch_threads > 0 {
+        tch::set_num_threads(args.torch_threads);
+    }
+    let runtime = udapose_engine::runtime::RuntimeInfo::detect();
+    tracing::info!(device = ?runtime.device(), torch_threads = tch::get_num_threads(), rayon_threads = runtime.rayon_threads, "runtime");
+    let metrics = Arc::new(Metrics::new());
+    let config = WorkerConfig {
+        workers: args.workers as usize,
+        max_batch: args.max_batch as usize,
+        max_delay: Duration::from_millis(args.max_delay_ms),
+        queue_depth: args.queue_depth as usize,
+        device: runtime.device(),
+    };
+    let store = Store::open(&args.store).with_context(|| format!("opening the store {}", args.store.display()))?;
+    let registry = Arc::new(Registry::start(store, &args.models, &config, metrics.clone())?);
+    if args.poll_store_secs > 0 {
+        registry.poll(Duration::from_secs(args.poll_store_secs));
+    }
+    let limits = Limits {
+        max_request_bytes: usize::try_from(args.max_request_bytes).context("--max-request-bytes")?,
+        decode: DecodeLimits { max_side: args.max_image_side, ..DecodeLimits::default() },
+        default_timeout: Duration::from_millis(args.timeout_ms),
+    };
+    let service = Arc::new(Service::new(registry, limits, metrics, tokens));
 
-    // Bind both before serving either, so a bad address fails fast and both
-    // listen once the process reports healthy.
-    let http_listener = bind(args.http_addr, "HTTP").await?;
+    // Bind both before serving either, so a bad address fails fast and both listen once the
+    // process reports healthy.
+    let tls = args.tls_cert.clone().zip(args.tls_key.clone()).map(|(cert, key)| TlsFiles { cert, key });
+    let http_tcp = bind(args.http_addr, "HTTP").await?;
+    let http_listener = match &tls {
+        Some(files) => Listener::Tls(TlsListener::new(http_tcp, files)?),
+        None => Listener::Plain(http_tcp),
+    };
+    let grpc_tls = match &tls {
+        Some(files) => {
+            let (cert, key) = files.read()?;
+            Some(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)))
+        }
+        None => None,
+    };
     let grpc_listener = bind(args.grpc_addr, "gRPC").await?;
     let (stop_tx, stop_rx) = watch::channel(false);
     tokio::spawn(async move {
@@ -58,8 +158,8 @@ async fn main() -> Result<()> {
     });
 
     tokio::try_join!(
-        http::serve(http_listener, catalog.clone(), max_bytes, stopped(stop_rx.clone())),
-        grpc::serve(grpc_listener, catalog, max_bytes, stopped(stop_rx)),
+        http::serve(http_listener, service.clone(), stopped(stop_rx.clone())),
+        grpc::serve(grpc_listener, service, grpc_tls, stopped(stop_rx)),
     )?;
     tracing::info!("stopped");
     Ok(())

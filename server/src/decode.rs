@@ -1,0 +1,142 @@
+//! Image decoding under limits. Runs on a blocking thread (never on the async runtime); a
+//! decoder panic is caught and reported as a bad image.
+
+use std::{io::Cursor, panic::AssertUnwindSafe};
+
+use image::{ImageFormat, ImageReader, Limits, error::ImageError};
+
+use crate::{api::Pixels, error::ApiError};
+
+/// Bounds on what an image may decode to.
+#[derive(Debug, Clone, Copy)]
+pub struct DecodeLimits {
+    /// Largest width or height, in pixels.
+    pub max_side: u32,
+    /// Largest allocation the decoder may make, in bytes.
+    pub max_alloc: u64,
+}
+
+impl Default for DecodeLimits {
+    fn default() -> Self {
+        DecodeLimits { max_side: 8192, max_alloc: 512 * 1024 * 1024 }
+    }
+}
+
+/// Decodes PNG, JPEG or WebP bytes to RGB8 within `limits`.
+pub fn decode(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
+    if bytes.is_empty() {
+        return Err(ApiError::InvalidArgument("empty image: the request carried no bytes".into()));
+    }
+    match std::panic::catch_unwind(AssertUnwindSafe(|| decode_unguarded(bytes, limits))) {
+        Ok(result) => result,
+        Err(_) => Err(ApiError::InvalidArgument("the image decoder failed on this file (corrupt image)".into())),
+    }
+}
+
+fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
+    let format = image::guess_format(bytes)
+        .ok()
+        .filter(|f| matches!(f, ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::WebP));
+    let Some(format) = format else {
+        return Err(ApiError::InvalidArgument("not a PNG, JPEG or WebP image".into()));
+    };
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    let mut l = Limits::default();
+    l.max_image_width = Some(limits.max_side);
+    l.max_image_height = Some(limits.max_side);
+    l.max_alloc = Some(limits.max_alloc);
+    reader.limits(l.clone());
+    // Check the header's size first: a small file may claim a huge image (decompression bomb).
+    let (w, h) = reader.into_dimensions().map_err(|e| describe(e, format))?;
+    if w > limits.max_side || h > limits.max_side {
+        return Err(too_big(w, h, limits));
+    }
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    reader.limits(l);
+    let image = reader.decode().map_err(|e| describe(e, format))?.into_rgb8();
+    let (width, height) = (image.width() as usize, image.height() as usize);
+    Ok(Pixels { rgb8: image.into_raw(), width, height })
+}
+
+fn too_big(w: u32, h: u32, limits: DecodeLimits) -> ApiError {
+    ApiError::InvalidArgument(format!("image is {w}x{h} px, over the limit of {m}x{m}", m = limits.max_side))
+}
+
+fn describe(e: ImageError, format: ImageFormat) -> ApiError {
+    let name = format!("{format:?}").to_uppercase();
+    match e {
+        ImageError::Limits(l) => ApiError::InvalidArgument(format!("{name} image exceeds the decoding limits: {l}")),
+        other => ApiError::InvalidArgument(format!("cannot decode the {name} image: {other}")),
+    }
+}
+
+/// Checks raw RGB8 pixels and copies them into a `Pixels`.
+pub fn raw(width: u32, height: u32, rgb8: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
+    if width == 0 || height == 0 {
+        return Err(ApiError::InvalidArgument(format!("raw image is {width}x{height} px")));
+    }
+    if width > limits.max_side || height > limits.max_side {
+        return Err(too_big(width, height, limits));
+    }
+    let expected = width as usize * height as usize * 3;
+    if rgb8.len() != expected {
+        return Err(ApiError::InvalidArgument(format!(
+            "raw image: {} bytes for {width}x{height} RGB8 (expected {expected})",
+            rgb8.len()
+        )));
+    }
+    Ok(Pixels { rgb8: rgb8.to_vec(), width: width as usize, height: height as usize })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png(width: u32, height: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        let img = image::RgbImage::from_fn(width, height, |x, y| image::Rgb([x as u8, y as u8, 7]));
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Png).unwrap();
+        out
+    }
+
+    /// A valid PNG signature and IHDR that claim `width`×`height`, and nothing else.
+    pub fn png_header(width: u32, height: u32) -> Vec<u8> {
+        let mut out = png(1, 1);
+        out[16..20].copy_from_slice(&width.to_be_bytes());
+        out[20..24].copy_from_slice(&height.to_be_bytes());
+        out.truncate(33);
+        out
+    }
+
+    #[test]
+    fn a_png_decodes_to_its_pixels() {
+        let p = decode(&png(20, 10), DecodeLimits::default()).unwrap();
+        assert_eq!((p.width, p.height, p.rgb8.len()), (20, 10, 600));
+        assert_eq!(&p.rgb8[3 * 21..3 * 22], &[1, 1, 7]);
+    }
+
+    #[test]
+    fn bad_files_are_invalid_arguments_with_a_reason() {
+        let limits = DecodeLimits::default();
+        let cases: [(&[u8], &str); 4] = [
+            (&[], "empty image"),
+            (b"not an image at all", "not a PNG, JPEG or WebP"),
+            (&png(20, 10)[..60], "cannot decode the PNG"),
+            (&png_header(30000, 30000), "30000x30000"),
+        ];
+        for (bytes, want) in cases {
+            let err = decode(bytes, limits).unwrap_err();
+            assert!(matches!(err, ApiError::InvalidArgument(_)), "{err:?}");
+            assert!(err.to_string().contains(want), "{want}: {err}");
+        }
+    }
+
+    #[test]
+    fn raw_pixels_must_match_their_size() {
+        let limits = DecodeLimits::default();
+        assert!(raw(2, 2, &[0; 12], limits).is_ok());
+        assert!(raw(2, 2, &[0; 11], limits).unwrap_err().to_string().contains("expected 12"));
+        assert!(raw(0, 2, &[], limits).is_err());
+        assert!(raw(9000, 1, &[], limits).unwrap_err().to_string().contains("over the limit"));
+    }
+}

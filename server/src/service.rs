@@ -1,0 +1,150 @@
+//! The one internal API both transports call: validate, decode off the runtime, admit to the
+//! category's queue, await the worker, assemble the answer, record metrics.
+
+use std::{
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use tokio::sync::{Semaphore, oneshot};
+
+use crate::{
+    api::{EstimateAnswer, EstimateInput, ImageInput, Timings},
+    auth::Tokens,
+    decode::{self, DecodeLimits},
+    error::ApiError,
+    metrics::Metrics,
+    registry::{Category, Registry},
+    store::valid_category,
+    worker::Job,
+};
+
+/// Most boxes in one request.
+pub const MAX_BOXES: usize = 16;
+
+#[derive(Debug, Clone)]
+pub struct Limits {
+    pub max_request_bytes: usize,
+    pub decode: DecodeLimits,
+    /// Deadline of a request that brings none.
+    pub default_timeout: Duration,
+}
+
+pub struct Service {
+    pub registry: Arc<Registry>,
+    pub limits: Limits,
+    pub metrics: Arc<Metrics>,
+    pub tokens: Tokens,
+    /// Decodes running at once (each may hold a large image in memory).
+    decode_slots: Semaphore,
+}
+
+impl Service {
+    pub fn new(registry: Arc<Registry>, limits: Limits, metrics: Arc<Metrics>, tokens: Tokens) -> Self {
+        let slots = std::thread::available_parallelism().map_or(2, |n| n.get()) * 2;
+        Service { registry, limits, metrics, tokens, decode_slots: Semaphore::new(slots) }
+    }
+
+    /// The category, if the name is valid and configured.
+    pub fn category(&self, name: &str) -> Result<&Arc<Category>, ApiError> {
+        if !valid_category(name) {
+            return Err(ApiError::InvalidArgument(format!(
+                "invalid category name {:?}: 1-64 characters of a-z, 0-9, '_' and '-'",
+                truncate(name, 80)
+            )));
+        }
+        self.registry.get(name).ok_or_else(|| {
+            let known: Vec<&str> = self.registry.categories().map(|c| c.name.as_str()).collect();
+            ApiError::NotFound(format!("unknown category {name:?}; this server has: {}", known.join(", ")))
+        })
+    }
+
+    /// Estimates, recording metrics by `transport` ("http", "grpc").
+    pub async fn estimate(&self, input: EstimateInput, transport: &str) -> Result<EstimateAnswer, ApiError> {
+        let arrived = Instant::now();
+        let category = input.category.clone();
+        let result = self.estimate_inner(input, arrived).await;
+        let code = result.as_ref().map_or_else(ApiError::code_name, |_| "OK");
+        self.metrics.requests.with_label_values(&[transport, code]).inc();
+        match &result {
+            Ok(a) => {
+                self.metrics
+                    .latency
+                    .with_label_values(&[category.as_str(), a.model_version.as_str()])
+                    .observe(a.timings.total_ms / 1e3);
+                let t = &a.timings;
+                for (stage, v) in [
+                    ("decode", t.decode_ms),
+                    ("queue", t.queue_ms),
+                    ("crop", t.crop_ms),
+                    ("backbone", t.backbone_ms),
+                    ("solver", t.solver_ms),
+                ] {
+                    self.metrics.stage.with_label_values(&[stage]).observe(v / 1e3);
+                }
+                tracing::info!(%category, version = %a.model_version, total_ms = t.total_ms, queue_ms = t.queue_ms,
+                    backbone_ms = t.backbone_ms, solver_ms = t.solver_ms, batch = t.batch_size, "estimate");
+            }
+            Err(e) => {
+                self.metrics.errors.with_label_values(&[e.code_name()]).inc();
+                tracing::info!(%category, code = e.code_name(), "estimate refused: {e}");
+            }
+        }
+        result
+    }
+
+    async fn estimate_inner(&self, input: EstimateInput, arrived: Instant) -> Result<EstimateAnswer, ApiError> {
+        let category = self.category(&input.category)?.clone();
+        if input.boxes.len() > MAX_BOXES {
+            return Err(ApiError::InvalidArgument(format!(
+                "{} boxes; at most {MAX_BOXES} per request",
+                input.boxes.len()
+            )));
+        }
+        // Refuse before decoding when the queue is already full: overload costs no CPU.
+        if category.saturated() {
+            return Err(ApiError::unavailable(format!("overloaded: the {} queue is full; retry later", category.name)));
+        }
+        let timeout = input.timeout.filter(|t| !t.is_zero()).unwrap_or(self.limits.default_timeout);
+        let decode_started = Instant::now();
+        let pixels = self.decode(input.image).await?;
+        let decode_ms = decode_started.elapsed().as_secs_f64() * 1e3;
+        let (reply, answer) = oneshot::channel();
+        let job = Job { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline: arrived + timeout, reply };
+        category.submit(job)?;
+        let queued = category.queued() as i64;
+        self.metrics.queue_depth.with_label_values(&[category.name.as_str()]).set(queued);
+        let answer =
+            answer.await.map_err(|_| ApiError::Internal("the inference worker dropped the request".into()))??;
+        let timings = Timings {
+            decode_ms,
+            queue_ms: answer.queue_ms,
+            crop_ms: answer.crop_ms,
+            backbone_ms: answer.backbone_ms,
+            solver_ms: answer.solver_ms,
+            total_ms: arrived.elapsed().as_secs_f64() * 1e3,
+            batch_size: answer.batch_size as u32,
+        };
+        Ok(EstimateAnswer {
+            estimates: answer.estimates,
+            model_version: answer.version,
+            frame_id: input.frame_id,
+            timings,
+        })
+    }
+
+    /// Decodes on a blocking thread, never on the async runtime.
+    async fn decode(&self, image: ImageInput) -> Result<crate::api::Pixels, ApiError> {
+        let limits = self.limits.decode;
+        let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
+        let task = tokio::task::spawn_blocking(move || match image {
+            ImageInput::Encoded(bytes) => decode::decode(&bytes, limits),
+            ImageInput::Raw { width, height, rgb8 } => decode::raw(width, height, &rgb8, limits),
+        });
+        task.await.map_err(|_| ApiError::InvalidArgument("the image decoder failed on this file".into()))?
+    }
+}
+
+fn truncate(s: &str, n: usize) -> String {
+    s.chars().take(n).collect()
+}

@@ -1,0 +1,288 @@
+//! Inference workers: threads that own their tch model copies, take jobs from their category's
+//! bounded queue, batch them (up to `max_batch` crops, waiting at most `max_delay` after the
+//! first), run the backbone once per batch and the solver per crop.
+
+use std::{
+    panic::AssertUnwindSafe,
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use anyhow::{Context, Result};
+use crossbeam_channel::Receiver;
+use tch::{Device, Tensor};
+use tokio::sync::oneshot;
+use udapose_engine::{
+    checkpoint::{self, Model},
+    estimator::{self, SolverMesh},
+    input::{self, Crop, CropBox, Rgb8Image},
+    solver::{Estimate, SolverConfig},
+};
+
+use crate::{
+    api::{BoxAnswer, HypothesisAnswer, Pixels, PoseAnswer},
+    error::ApiError,
+    metrics::Metrics,
+    registry::{ActiveVersion, Category},
+};
+
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Worker threads per category, each with its own model copy.
+    pub workers: usize,
+    /// Most crops in one backbone batch (1: no batching, bit-identical answers).
+    pub max_batch: usize,
+    /// How long the first job of a batch waits for company.
+    pub max_delay: Duration,
+    /// Jobs that may wait per category before requests are refused.
+    pub queue_depth: usize,
+    pub device: Device,
+}
+
+/// One request's work: a decoded image and its boxes.
+pub struct Job {
+    pub pixels: Pixels,
+    pub boxes: Vec<[f64; 4]>,
+    pub enqueued: Instant,
+    pub deadline: Instant,
+    pub reply: oneshot::Sender<Result<WorkerAnswer, ApiError>>,
+}
+
+impl Job {
+    fn crops(&self) -> usize {
+        self.boxes.len().max(1)
+    }
+}
+
+/// What a worker computed for one job.
+#[derive(Debug)]
+pub struct WorkerAnswer {
+    pub estimates: Vec<PoseAnswer>,
+    pub version: String,
+    pub queue_ms: f64,
+    pub crop_ms: f64,
+    pub backbone_ms: f64,
+    pub solver_ms: f64,
+    pub batch_size: usize,
+}
+
+/// A model as one worker holds it.
+struct Loaded {
+    active: Arc<ActiveVersion>,
+    model: Model,
+    solver_mesh: SolverMesh,
+    config: SolverConfig,
+}
+
+impl Loaded {
+    fn load(active: Arc<ActiveVersion>, device: Device) -> Result<Self> {
+        let model =
+            checkpoint::load(&active.dir, device).with_context(|| format!("loading {}", active.dir.display()))?;
+        let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
+        Ok(Loaded { active, model, solver_mesh, config: SolverConfig::default() })
+    }
+}
+
+pub fn spawn(
+    category: Arc<Category>,
+    rx: Receiver<Job>,
+    config: WorkerConfig,
+    metrics: Arc<Metrics>,
+    index: usize,
+) -> Result<()> {
+    std::thread::Builder::new()
+        .name(format!("infer-{}-{index}", category.name))
+        .spawn(move || run(&category, &rx, &config, &metrics))
+        .context("spawning an inference worker")?;
+    Ok(())
+}
+
+fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: &Metrics) {
+    let Some(mut loaded) = load_active(category, config.device, None) else { return };
+    category.worker_loaded();
+    let depth = metrics.queue_depth.with_label_values(&[category.name.as_str()]);
+    let batch_sizes = metrics.batch_size.with_label_values(&[category.name.as_str()]);
+    while let Ok(first) = rx.recv() {
+        // Swap between batches: a new generation is loaded here, on this thread, while the
+        // previous copy keeps serving until it is ready.
+        if let Some(active) = category.active()
+            && active.generation != loaded.active.generation
+            && let Some(next) = load_active(category, config.device, Some(&loaded))
+        {
+            loaded = next;
+        }
+        let batch = collect(rx, first, config);
+        depth.set(rx.len() as i64);
+        let crops: usize = batch.iter().map(Job::crops).sum();
+        batch_sizes.observe(crops as f64);
+        process(&loaded, batch, config.device);
+    }
+}
+
+/// Loads the category's active version; on failure keeps `current` serving (or marks the
+/// category failed when there is none).
+fn load_active(category: &Category, device: Device, current: Option<&Loaded>) -> Option<Loaded> {
+    let active = category.active()?;
+    let started = Instant::now();
+    match Loaded::load(active.clone(), device) {
+        Ok(loaded) => {
+            tracing::info!(category = %category.name, version = %active.version, generation = active.generation,
+                ms = started.elapsed().as_millis() as u64, "model loaded");
+            category.set_error(None);
+            Some(loaded)
+        }
+        Err(e) => {
+            tracing::error!(category = %category.name, version = %active.version, "cannot load the model: {e:#}");
+            if current.is_none() {
+                category.set_error(Some(format!("{e:#}")));
+            }
+            None
+        }
+    }
+}
+
+/// The first job plus whatever else arrives within `max_delay`, up to `max_batch` crops.
+fn collect(rx: &Receiver<Job>, first: Job, config: &WorkerConfig) -> Vec<Job> {
+    let mut crops = first.crops();
+    let mut batch = vec![first];
+    let until = Instant::now() + config.max_delay;
+    while crops < config.max_batch {
+        match rx.recv_deadline(until) {
+            Ok(job) => {
+                crops += job.crops();
+                batch.push(job);
+            }
+            Err(_) => break,
+        }
+    }
+    batch
+}
+
+/// A job whose crops are cut, waiting for the backbone.
+struct Pending {
+    job: Job,
+    crops: Vec<Crop>,
+    queue_ms: f64,
+    crop_ms: f64,
+}
+
+fn process(loaded: &Loaded, batch: Vec<Job>, device: Device) {
+    let mut pending = Vec::with_capacity(batch.len());
+    for job in batch {
+        let started = Instant::now();
+        let queue_ms = ms(started - job.enqueued);
+        if job.reply.is_closed() {
+            continue; // the caller gave up (cancelled, timed out): nothing to compute
+        }
+        if started > job.deadline {
+            let _ = job.reply.send(Err(ApiError::DeadlineExceeded(format!(
+                "the deadline passed after {queue_ms:.0} ms in the queue; not computed"
+            ))));
+            continue;
+        }
+        match cut(loaded, &job) {
+            Ok(crops) => pending.push(Pending { job, crops, queue_ms, crop_ms: ms(started.elapsed()) }),
+            Err(e) => {
+                let _ = job.reply.send(Err(e));
+            }
+        }
+    }
+    if pending.is_empty() {
+        return;
+    }
+    let crops: Vec<&Crop> = pending.iter().flat_map(|p| &p.crops).collect();
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops, device)));
+    let (mut results, backbone_ms) = match outcome {
+        Ok(Ok(r)) => r,
+        Ok(Err(e)) => (crops.iter().map(|_| Err(e.clone())).collect(), 0.0),
+        Err(_) => (crops.iter().map(|_| Err(ApiError::Internal("inference panicked".into()))).collect(), 0.0),
+    };
+    let batch_size = crops.len();
+    let mut results = results.drain(..);
+    for p in pending {
+        let answers: Vec<_> = results.by_ref().take(p.crops.len()).collect();
+        let solver_ms = answers.iter().map(|a| a.as_ref().map_or(0.0, |(_, t)| *t)).sum();
+        let estimates: Result<Vec<PoseAnswer>, ApiError> = answers.into_iter().map(|a| a.map(|(e, _)| e)).collect();
+        let reply = estimates.map(|estimates| WorkerAnswer {
+            estimates,
+            version: loaded.active.version.clone(),
+            queue_ms: p.queue_ms,
+            crop_ms: p.crop_ms,
+            backbone_ms,
+            solver_ms,
+            batch_size,
+        });
+        let _ = p.job.reply.send(reply);
+    }
+}
+
+/// The job's crops at the model's size.
+fn cut(loaded: &Loaded, job: &Job) -> Result<Vec<Crop>, ApiError> {
+    let image = Rgb8Image::new(&job.pixels.rgb8, job.pixels.width, job.pixels.height)?;
+    let size = loaded.active.manifest.crop;
+    if job.boxes.is_empty() {
+        return Ok(vec![input::crop(&image, None, size)?]);
+    }
+    job.boxes.iter().map(|&[x0, y0, x1, y1]| Ok(input::crop(&image, Some(CropBox { x0, y0, x1, y1 }), size)?)).collect()
+}
+
+type CropResult = Result<(PoseAnswer, f64), ApiError>;
+
+/// The backbone once over all crops, then the solver per crop. Returns each crop's answer and
+/// solver time, and the backbone's time.
+fn infer(loaded: &Loaded, crops: &[&Crop], device: Device) -> Result<(Vec<CropResult>, f64), ApiError> {
+    let started = Instant::now();
+    let batch = Tensor::cat(&crops.iter().map(|c| c.tensor()).collect::<Vec<_>>(), 0).to_device(device);
+    let features = estimator::features(&loaded.model.backbone, &batch)?;
+    let backbone_ms = ms(started.elapsed());
+    let [h, w] = loaded.active.manifest.crop;
+    let camera = udapose_engine::Camera::for_crop(h, w)?;
+    let results = crops
+        .iter()
+        .zip(&features)
+        .map(|(crop, f)| {
+            let t = Instant::now();
+            let nm = &loaded.model.neural_mesh;
+            let estimate = estimator::estimate(&nm.mesh, &loaded.solver_mesh, f, &camera, &loaded.config)?;
+            let answer = answer(loaded, crop, &estimate)?;
+            Ok((answer, ms(t.elapsed())))
+        })
+        .collect();
+    Ok((results, backbone_ms))
+}
+
+fn answer(loaded: &Loaded, crop: &Crop, e: &Estimate) -> Result<PoseAnswer, ApiError> {
+    let p = e.pose;
+    let r = p.rotation();
+    let corners = crop.project_cuboid(&loaded.active.manifest.cuboid, &p)?;
+    let b = crop.crop_box;
+    Ok(PoseAnswer {
+        azimuth: p.azimuth,
+        elevation: p.elevation,
+        theta: p.theta,
+        azimuth_deg: p.azimuth.to_degrees(),
+        elevation_deg: p.elevation.to_degrees(),
+        theta_deg: p.theta.to_degrees(),
+        distance: p.distance,
+        rotation: (0..9).map(|i| r[(i / 3, i % 3)]).collect(),
+        score: e.score,
+        hypotheses: e
+            .hypotheses
+            .iter()
+            .map(|h| HypothesisAnswer {
+                azimuth: h.pose.azimuth,
+                elevation: h.pose.elevation,
+                theta: h.pose.theta,
+                distance: h.pose.distance,
+                score: 1.0 - h.loss,
+            })
+            .collect(),
+        crop_box: BoxAnswer { x0: b.x0, y0: b.y0, x1: b.x1, y1: b.y1 },
+        cuboid: corners.iter().flatten().copied().collect(),
+        model_version: loaded.active.version.clone(),
+    })
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
