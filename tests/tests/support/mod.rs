@@ -1,4 +1,6 @@
-//! Starts the real `udapose-server` binary for a test and stops it on drop.
+//! Starts the real `udapose-server` binary for a test and stops it on drop; a minimal HTTP/1.1
+//! client; the quick SynCar-OOD images with their ground truth; pose error.
+#![allow(dead_code)] // each test binary uses a different part
 
 use std::{
     fs::{self, File},
@@ -10,10 +12,10 @@ use std::{
     time::{Duration, Instant},
 };
 
-/// How long a server may take to answer `/healthz` after spawning.
-const STARTUP_TIMEOUT: Duration = Duration::from_secs(20);
+/// How long a server may take to answer `/healthz` (or `/readyz`) after spawning.
+const STARTUP_TIMEOUT: Duration = Duration::from_secs(60);
 
-/// A running `udapose-server` with its own models directory and log file.
+/// A running `udapose-server` with its own models directory, store and log file.
 pub struct Server {
     child: Child,
     dir: PathBuf,
@@ -21,32 +23,72 @@ pub struct Server {
     pub grpc_addr: SocketAddr,
 }
 
-impl Server {
-    /// Spawns the server on free loopback ports with an empty models
-    /// directory and waits until `/healthz` answers.
-    pub fn start(name: &str) -> Server {
+/// How to start a server.
+pub struct ServerConfig {
+    name: String,
+    quick_model: bool,
+    args: Vec<String>,
+}
+
+impl ServerConfig {
+    /// Serves the quick model (`UDAPOSE_QUICK_MODEL`) as category `car`.
+    pub fn quick_model(mut self) -> Self {
+        self.quick_model = true;
+        self
+    }
+
+    pub fn arg(mut self, arg: impl Into<String>) -> Self {
+        self.args.push(arg.into());
+        self
+    }
+
+    /// Spawns the server on free loopback ports and waits until `/healthz` answers (and, with
+    /// a model, until `/readyz` does).
+    pub fn start(self) -> Server {
         let binary = server_binary(); // before creating anything to clean up
-        let dir = scratch_dir(name);
+        let dir = scratch_dir(&self.name);
         let models = dir.join("models");
         fs::create_dir_all(&models).expect("creating the models directory");
+        if self.quick_model {
+            let quick = env_path("UDAPOSE_QUICK_MODEL");
+            fs::create_dir(models.join("car")).unwrap();
+            for f in fs::read_dir(&quick).expect("reading the quick model").map(|e| e.unwrap().path()) {
+                fs::copy(&f, models.join("car").join(f.file_name().unwrap())).unwrap();
+            }
+        }
         let [http_addr, grpc_addr] = free_addrs();
         let log = File::create(dir.join("server.log")).expect("creating the server log");
         let child = Command::new(binary)
-            .arg("--http-addr")
-            .arg(http_addr.to_string())
-            .arg("--grpc-addr")
-            .arg(grpc_addr.to_string())
+            .args(["--http-addr", &http_addr.to_string(), "--grpc-addr", &grpc_addr.to_string()])
             .arg("--models")
             .arg(&models)
+            .arg("--store")
+            .arg(dir.join("state"))
+            .args(&self.args)
             .env("RUST_LOG", "info")
+            .env_remove("UDAPOSE_TOKEN")
             .stdin(Stdio::null())
             .stdout(log.try_clone().expect("cloning the log handle"))
             .stderr(log)
             .spawn()
             .expect("spawning udapose-server");
         let mut server = Server { child, dir, http_addr, grpc_addr };
-        server.wait_healthy();
+        server.wait_for("/healthz");
+        if self.quick_model {
+            server.wait_for("/readyz");
+        }
         server
+    }
+}
+
+impl Server {
+    pub fn config(name: &str) -> ServerConfig {
+        ServerConfig { name: name.into(), quick_model: false, args: Vec::new() }
+    }
+
+    /// A server with an empty models directory.
+    pub fn start(name: &str) -> Server {
+        Server::config(name).start()
     }
 
     /// `http://host:port` of the gRPC listener.
@@ -56,7 +98,14 @@ impl Server {
 
     /// GETs `path` from the HTTP listener; returns (status code, body).
     pub fn get(&self, path: &str) -> (u16, String) {
-        http_get(self.http_addr, path).unwrap_or_else(|e| panic!("GET {path}: {e}\n{}", self.log()))
+        let r = self.request("GET", path, &[], b"");
+        (r.status, r.body)
+    }
+
+    /// Any request to the HTTP listener.
+    pub fn request(&self, method: &str, path: &str, headers: &[(&str, &str)], body: &[u8]) -> HttpResponse {
+        http_request(self.http_addr, method, path, headers, body)
+            .unwrap_or_else(|e| panic!("{method} {path}: {e}\n{}", self.log()))
     }
 
     /// Sends SIGTERM and waits (bounded) for the process to exit.
@@ -81,17 +130,17 @@ impl Server {
         format!("--- udapose-server log ---\n{log}")
     }
 
-    fn wait_healthy(&mut self) {
+    fn wait_for(&mut self, path: &str) {
         let deadline = Instant::now() + STARTUP_TIMEOUT;
         loop {
-            if let Ok((200, _)) = http_get(self.http_addr, "/healthz") {
+            if let Ok(HttpResponse { status: 200, .. }) = http_request(self.http_addr, "GET", path, &[], b"") {
                 return;
             }
             if let Some(status) = self.child.try_wait().expect("polling the server") {
                 panic!("udapose-server exited during startup ({status})\n{}", self.log());
             }
             if Instant::now() >= deadline {
-                panic!("udapose-server not healthy after {STARTUP_TIMEOUT:?}\n{}", self.log());
+                panic!("udapose-server: {path} not 200 after {STARTUP_TIMEOUT:?}\n{}", self.log());
             }
             thread::sleep(Duration::from_millis(100));
         }
@@ -107,10 +156,15 @@ impl Drop for Server {
     }
 }
 
+pub fn env_path(var: &str) -> PathBuf {
+    PathBuf::from(std::env::var_os(var).unwrap_or_else(|| panic!("{var} is set by `make test`")))
+}
+
 /// The `udapose-server` next to this test executable (`target/<profile>/`),
 /// or `$UDAPOSE_SERVER_BIN`.
 fn server_binary() -> PathBuf {
-    let server = std::env::var_os("UDAPOSE_SERVER_BIN").map(PathBuf::from).unwrap_or_else(beside_tests);
+    let server =
+        std::env::var_os("UDAPOSE_SERVER_BIN").map(PathBuf::from).unwrap_or_else(|| beside_tests("udapose-server"));
     assert!(
         server.is_file(),
         "{} not found: build it first with `cargo build --release --workspace` \
@@ -121,36 +175,148 @@ fn server_binary() -> PathBuf {
 }
 
 /// Test executables live in target/<profile>/deps/; binaries in target/<profile>/.
-fn beside_tests() -> PathBuf {
+pub fn beside_tests(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("locating the test executable");
     let profile_dir = exe.parent().and_then(Path::parent).expect("test executable has no target dir");
-    profile_dir.join(format!("udapose-server{}", std::env::consts::EXE_SUFFIX))
+    profile_dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
 }
 
 /// Distinct loopback addresses whose ports were free a moment ago: bind
 /// port 0 for each (all held at once, so they differ), then release them.
-fn free_addrs<const N: usize>() -> [SocketAddr; N] {
+pub fn free_addrs<const N: usize>() -> [SocketAddr; N] {
     let listeners: Vec<_> = (0..N).map(|_| TcpListener::bind("127.0.0.1:0").expect("binding a free port")).collect();
     std::array::from_fn(|i| listeners[i].local_addr().expect("reading the free port"))
 }
 
-fn scratch_dir(name: &str) -> PathBuf {
+pub fn scratch_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("udapose-e2e-{name}-{}", std::process::id()));
     let _ = fs::remove_dir_all(&dir);
     dir
 }
 
-/// Minimal HTTP/1.1 GET with `Connection: close`, enough for JSON endpoints
-/// that send a Content-Length (no chunked decoding).
-fn http_get(addr: SocketAddr, path: &str) -> std::io::Result<(u16, String)> {
-    let timeout = Duration::from_secs(5);
-    let mut stream = TcpStream::connect_timeout(&addr, timeout)?;
+#[derive(Debug)]
+pub struct HttpResponse {
+    pub status: u16,
+    pub headers: Vec<(String, String)>,
+    pub body: String,
+}
+
+impl HttpResponse {
+    pub fn header(&self, name: &str) -> Option<&str> {
+        self.headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
+    }
+
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::from_str(&self.body).unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.body))
+    }
+}
+
+/// Minimal HTTP/1.1 with `Connection: close`: Content-Length or chunked bodies. A server may
+/// answer before reading a large body (413); a failed write is then not an error.
+pub fn http_request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &[u8],
+) -> std::io::Result<HttpResponse> {
+    let timeout = Duration::from_secs(60);
+    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
     stream.set_read_timeout(Some(timeout))?;
-    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
-    let mut response = String::new();
-    stream.read_to_string(&mut response)?;
-    let invalid = || std::io::Error::new(std::io::ErrorKind::InvalidData, response.clone());
-    let (head, body) = response.split_once("\r\n\r\n").ok_or_else(invalid)?;
-    let code = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).ok_or_else(invalid)?;
-    Ok((code, body.to_owned()))
+    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        head.push_str(&format!("{k}: {v}\r\n"));
+    }
+    if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("content-length")) {
+        head.push_str(&format!("Content-Length: {}\r\n", body.len()));
+    }
+    head.push_str("\r\n");
+    stream.write_all(head.as_bytes())?;
+    let _ = stream.write_all(body);
+    let mut raw = Vec::new();
+    let read = stream.read_to_end(&mut raw);
+    if raw.is_empty() {
+        read?;
+    }
+    let text = String::from_utf8_lossy(&raw).into_owned();
+    let invalid = || std::io::Error::new(std::io::ErrorKind::InvalidData, text.clone());
+    let (head, body) = text.split_once("\r\n\r\n").ok_or_else(invalid)?;
+    let mut lines = head.lines();
+    let status =
+        lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|c| c.parse().ok()).ok_or_else(invalid)?;
+    let headers: Vec<(String, String)> =
+        lines.filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_owned(), v.trim().to_owned()))).collect();
+    let chunked = headers.iter().any(|(k, v)| k.eq_ignore_ascii_case("transfer-encoding") && v.contains("chunked"));
+    let body = if chunked { dechunk(body) } else { body.to_owned() };
+    Ok(HttpResponse { status, headers, body })
+}
+
+fn dechunk(mut s: &str) -> String {
+    let mut out = String::new();
+    while let Some((size, rest)) = s.split_once("\r\n") {
+        let Ok(n) = usize::from_str_radix(size.trim(), 16) else { break };
+        if n == 0 || rest.len() < n {
+            break;
+        }
+        out.push_str(&rest[..n]);
+        s = rest[n..].trim_start_matches("\r\n");
+    }
+    out
+}
+
+/// One quick SynCar-OOD test image with its ground-truth angles.
+pub struct QuickImage {
+    pub path: PathBuf,
+    pub bytes: Vec<u8>,
+    /// `[azimuth, elevation, theta]`, radians.
+    pub truth: [f64; 3],
+}
+
+/// The first `n` images of the quick dataset's `domain/test` split.
+pub fn quick_images(domain: &str, n: usize) -> Vec<QuickImage> {
+    let root = env_path("UDAPOSE_QUICK_DATA").join(domain).join("test");
+    // The split's list order, which `udapose-lab eval --limit` follows too.
+    let list = fs::read_to_string(root.join("lists/car/list.txt")).expect("the quick split's list");
+    list.lines()
+        .map(str::trim)
+        .filter(|n| !n.is_empty())
+        .map(str::to_owned)
+        .into_iter()
+        .take(n)
+        .map(|name| {
+            let path = root.join("images/car").join(&name);
+            let npz = root.join("annotations/car").join(name.replace(".png", ".npz"));
+            let truth = ["azimuth", "elevation", "theta"].map(|k| npz_scalar(&npz, k));
+            QuickImage { bytes: fs::read(&path).unwrap(), path, truth }
+        })
+        .collect()
+}
+
+/// A scalar `f8` member of an `.npz`: the last 8 bytes of `<key>.npy`.
+fn npz_scalar(path: &Path, key: &str) -> f64 {
+    let mut zip = zip::ZipArchive::new(File::open(path).unwrap()).unwrap();
+    let mut member = zip.by_name(&format!("{key}.npy")).unwrap();
+    let mut bytes = Vec::new();
+    member.read_to_end(&mut bytes).unwrap();
+    f64::from_le_bytes(bytes[bytes.len() - 8..].try_into().unwrap())
+}
+
+/// `R(a, e, θ) = Rz(θ)·Rx(−(π/2 − e))·Rz(−a)` (METHOD.md §2), row-major.
+pub fn rotation([a, e, t]: [f64; 3]) -> [[f64; 3]; 3] {
+    let rz = |x: f64| [[x.cos(), -x.sin(), 0.0], [x.sin(), x.cos(), 0.0], [0.0, 0.0, 1.0]];
+    let rx = |x: f64| [[1.0, 0.0, 0.0], [0.0, x.cos(), -x.sin()], [0.0, x.sin(), x.cos()]];
+    mul(mul(rz(t), rx(-(std::f64::consts::FRAC_PI_2 - e))), rz(-a))
+}
+
+fn mul(a: [[f64; 3]; 3], b: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
+}
+
+/// Geodesic angle between two rotations, radians.
+pub fn geodesic(a: [[f64; 3]; 3], b: [[f64; 3]; 3]) -> f64 {
+    let at: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| a[j][i]));
+    let q = mul(at, b);
+    let w = [(q[2][1] - q[1][2]) / 2.0, (q[0][2] - q[2][0]) / 2.0, (q[1][0] - q[0][1]) / 2.0];
+    let norm = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    norm.atan2((q[0][0] + q[1][1] + q[2][2] - 1.0) / 2.0)
 }
