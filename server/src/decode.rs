@@ -40,17 +40,16 @@ fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiErr
     let Some(format) = format else {
         return Err(ApiError::InvalidArgument("not a PNG, JPEG or WebP image".into()));
     };
-    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    // The header's size first (reading it allocates nothing): a small file may claim a huge
+    // image (decompression bomb), and the caller should hear which size was refused.
+    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format).into_dimensions().map_err(|e| describe(e, format))?;
+    if w > limits.max_side || h > limits.max_side {
+        return Err(too_big(w, h, limits));
+    }
     let mut l = Limits::default();
     l.max_image_width = Some(limits.max_side);
     l.max_image_height = Some(limits.max_side);
     l.max_alloc = Some(limits.max_alloc);
-    reader.limits(l.clone());
-    // Check the header's size first: a small file may claim a huge image (decompression bomb).
-    let (w, h) = reader.into_dimensions().map_err(|e| describe(e, format))?;
-    if w > limits.max_side || h > limits.max_side {
-        return Err(too_big(w, h, limits));
-    }
     let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
     reader.limits(l);
     let image = reader.decode().map_err(|e| describe(e, format))?.into_rgb8();
@@ -100,12 +99,26 @@ mod tests {
     }
 
     /// A valid PNG signature and IHDR that claim `width`×`height`, and nothing else.
-    pub fn png_header(width: u32, height: u32) -> Vec<u8> {
+    fn png_header(width: u32, height: u32) -> Vec<u8> {
         let mut out = png(1, 1);
         out[16..20].copy_from_slice(&width.to_be_bytes());
         out[20..24].copy_from_slice(&height.to_be_bytes());
+        let crc = crc32(&out[12..29]); // the IHDR chunk's type and data
+        out[29..33].copy_from_slice(&crc.to_be_bytes());
         out.truncate(33);
         out
+    }
+
+    /// CRC-32 (ISO-HDLC), as PNG chunks carry it.
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut crc = !0u32;
+        for &b in bytes {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+            }
+        }
+        !crc
     }
 
     #[test]
