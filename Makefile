@@ -33,12 +33,12 @@ QUICK_MODEL := $(UDAPOSE_CACHE)/run/quick-model
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv assets quick-data quick-model bench doctor fmt lint clean-cache
+.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service doctor fmt lint clean-cache
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data quick-model
+test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data quick-model
 	UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) cargo test $(CARGO_FLAGS) --workspace
 
 build: venv
@@ -68,6 +68,14 @@ assets:
 		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends torcs-data assimp-utils; \
 	fi
 
+# Headless Chromium and its WebDriver for the web page's end-to-end test (tests/tests/web.rs).
+# Checked on every run (cheap), so a machine that lost them gets them back.
+browser:
+	@if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then \
+		echo "installing Debian packages chromium and chromium-driver (the web page's test)"; \
+		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends chromium chromium-driver; \
+	fi
+
 quick-data: build assets $(CORRUPTIONS_STAMP)
 	rm -rf $(QUICK_DATA)
 	$(BIN)/udapose-lab synth --profile quick --seed 0 --torcs $(TORCS_DIR) --out $(QUICK_DATA)
@@ -78,6 +86,10 @@ quick-model: quick-data
 
 bench: venv
 	cargo bench --locked -p udapose-engine
+
+# The inference service under load → reports/service.json and .md (needs data/syncar-ood-standard).
+bench-service: build
+	$(BIN)/udapose-lab bench service
 
 doctor: build
 	$(BIN)/udapose-lab doctor

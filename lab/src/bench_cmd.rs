@@ -34,7 +34,13 @@ enum Bench {
     /// udapose's solver vs the autograd reference (NeMo's way) on the same images and features:
     /// time per image, Acc@π/6, and end-to-end latency with the backbone's share.
     Solver(SolverArgs),
+    /// The inference service under load: throughput and p50/p99 latency at several client
+    /// concurrencies, batching on and off, against the backbone-only ceiling.
+    Service(bench_service::ServiceArgs),
 }
+
+#[path = "bench_service.rs"]
+mod bench_service;
 
 #[derive(clap::Args)]
 pub struct SolverArgs {
@@ -72,6 +78,7 @@ pub struct SolverArgs {
 pub fn run(args: &Args) -> Result<()> {
     match &args.command {
         Bench::Solver(a) => solver(a),
+        Bench::Service(a) => bench_service::run(a),
     }
 }
 
