@@ -206,7 +206,7 @@ fn print_rows(name: &str, response: &EstimateResponse) {
 
 /// The same shape as the HTTP API's answer, plus the image's name.
 fn response_json(name: &str, r: &EstimateResponse) -> Value {
-    let t = r.timings.clone().unwrap_or_default();
+    let t = r.timings.unwrap_or_default();
     json!({
         "image": name,
         "model_version": r.model_version,

@@ -1,5 +1,6 @@
 //! Service input: crop boxes, padding with the ImageNet mean, antialiased resizing, and the way
 //! back from crop pixels to image pixels.
+#![allow(clippy::needless_range_loop)] // pixel loops read best with indices
 
 use udapose_engine::backbone::IMAGENET_MEAN;
 use udapose_engine::input::{BOX_FILL, CropBox, Rgb8Image, crop, crop_box};

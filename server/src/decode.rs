@@ -42,7 +42,8 @@ fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiErr
     };
     // The header's size first (reading it allocates nothing): a small file may claim a huge
     // image (decompression bomb), and the caller should hear which size was refused.
-    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format).into_dimensions().map_err(|e| describe(e, format))?;
+    let (w, h) =
+        ImageReader::with_format(Cursor::new(bytes), format).into_dimensions().map_err(|e| describe(e, format))?;
     if w > limits.max_side || h > limits.max_side {
         return Err(too_big(w, h, limits));
     }

@@ -7,6 +7,7 @@ use std::{
 };
 
 use tokio::sync::{Semaphore, oneshot};
+use tracing::Instrument;
 
 use crate::{
     api::{EstimateAnswer, EstimateInput, ImageInput, Timings},
@@ -63,11 +64,17 @@ impl Service {
     pub async fn estimate(&self, input: EstimateInput, transport: &str) -> Result<EstimateAnswer, ApiError> {
         let arrived = Instant::now();
         let category = input.category.clone();
-        let result = self.estimate_inner(input, arrived).await;
+        // One span per request; the worker's timings and the serving version are recorded on it.
+        let span = tracing::info_span!("estimate", transport, category = %category, frame_id = %input.frame_id,
+            version = tracing::field::Empty, total_ms = tracing::field::Empty);
+        let result = self.estimate_inner(input, arrived).instrument(span.clone()).await;
+        let _entered = span.enter(); // no await below: the events that follow belong to the span
         let code = result.as_ref().map_or_else(ApiError::code_name, |_| "OK");
         self.metrics.requests.with_label_values(&[transport, code]).inc();
         match &result {
             Ok(a) => {
+                span.record("version", a.model_version.as_str());
+                span.record("total_ms", a.timings.total_ms);
                 self.metrics
                     .latency
                     .with_label_values(&[category.as_str(), a.model_version.as_str()])
@@ -82,12 +89,19 @@ impl Service {
                 ] {
                     self.metrics.stage.with_label_values(&[stage]).observe(v / 1e3);
                 }
-                tracing::info!(%category, version = %a.model_version, total_ms = t.total_ms, queue_ms = t.queue_ms,
-                    backbone_ms = t.backbone_ms, solver_ms = t.solver_ms, batch = t.batch_size, "estimate");
+                tracing::info!(
+                    decode_ms = t.decode_ms,
+                    queue_ms = t.queue_ms,
+                    crop_ms = t.crop_ms,
+                    backbone_ms = t.backbone_ms,
+                    solver_ms = t.solver_ms,
+                    batch = t.batch_size,
+                    "answered"
+                );
             }
             Err(e) => {
                 self.metrics.errors.with_label_values(&[e.code_name()]).inc();
-                tracing::info!(%category, code = e.code_name(), "estimate refused: {e}");
+                tracing::info!(code = e.code_name(), "refused: {e}");
             }
         }
         result

@@ -281,7 +281,6 @@ pub fn quick_images(domain: &str, n: usize) -> Vec<QuickImage> {
         .map(str::trim)
         .filter(|n| !n.is_empty())
         .map(str::to_owned)
-        .into_iter()
         .take(n)
         .map(|name| {
             let path = root.join("images/car").join(&name);
