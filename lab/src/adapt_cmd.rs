@@ -43,6 +43,12 @@ pub struct Knobs {
     /// Vertex updates only (no backbone fine-tuning).
     #[arg(long)]
     no_backbone: bool,
+    /// Move the clutter vector towards the target's clutter features (same α).
+    #[arg(long)]
+    update_clutter: bool,
+    /// Images scoring below this quantile of a round are left out of the backbone step.
+    #[arg(long)]
+    drop_quantile: Option<f64>,
     /// Re-estimate κ_r from the fired features.
     #[arg(long)]
     reestimate_kappa: bool,
@@ -60,6 +66,8 @@ impl Knobs {
         c.batch = self.batch.unwrap_or(c.batch);
         c.seed = self.seed.unwrap_or(c.seed);
         c.update_backbone = !self.no_backbone;
+        c.update_clutter = self.update_clutter;
+        c.drop_quantile = self.drop_quantile.unwrap_or(c.drop_quantile);
         c.reestimate_kappa = self.reestimate_kappa;
         if let Some(t) = self.fixed_threshold {
             c.threshold = Threshold::Fixed(t);
