@@ -89,7 +89,7 @@ pub struct AdaptConfig {
 impl Default for AdaptConfig {
     fn default() -> Self {
         AdaptConfig {
-            threshold: Threshold::Source,
+            threshold: Threshold::Fixed(0.8),
             selection: Selection::PerVertex,
             min_fired_ratio: 0.05,
             drop_quantile: 0.2,
