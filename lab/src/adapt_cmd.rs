@@ -27,9 +27,12 @@ pub struct Knobs {
     /// ψ: minimum share of an image's visible vertices that must fire.
     #[arg(long)]
     min_fired_ratio: Option<f64>,
-    /// A fixed cosine threshold for every vertex instead of the source statistics τ_r.
-    #[arg(long)]
+    /// One cosine threshold for every vertex (default 0.8, the paper's value).
+    #[arg(long, conflicts_with = "source_threshold")]
     fixed_threshold: Option<f64>,
+    /// Per-vertex thresholds τ_r from the checkpoint's source statistics instead.
+    #[arg(long)]
+    source_threshold: bool,
     /// The ablation: use an image only if at least this share (Ω, e.g. 0.5) of its visible
     /// vertices fire, then with all of them.
     #[arg(long)]
@@ -71,6 +74,9 @@ impl Knobs {
         c.reestimate_kappa = self.reestimate_kappa;
         if let Some(t) = self.fixed_threshold {
             c.threshold = Threshold::Fixed(t);
+        }
+        if self.source_threshold {
+            c.threshold = Threshold::Source;
         }
         if let Some(omega) = self.global_filter {
             c.selection = Selection::Global(omega);

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{Threshold, fired_ratio};
+use udapose_engine::adapt::{AdaptConfig, fired_ratio};
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::{self, SolverMesh};
 use udapose_engine::metrics::MetricIntervals;
@@ -44,6 +44,8 @@ pub fn run(args: &Args) -> Result<()> {
     let camera = Camera::for_crop(h, w)?;
     let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
     let config = SolverConfig::default();
+    // The fired-vertex diagnostic uses the adaptation's firing test.
+    let threshold = AdaptConfig::default().threshold;
     let names: Vec<String> = if args.domains.is_empty() {
         all_domains().into_iter().map(|d| d.name).filter(|d| args.data.join(d).join(&args.split).is_dir()).collect()
     } else {
@@ -80,7 +82,7 @@ pub fn run(args: &Args) -> Result<()> {
             errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
             azimuths.push(pose.azimuth.to_degrees());
             let stride = config.stride;
-            fired.push(fired_ratio(&model.neural_mesh, &features[0], &camera, stride, &pose, Threshold::Source)?);
+            fired.push(fired_ratio(&model.neural_mesh, &features[0], &camera, stride, &pose, threshold)?);
         }
         let m = PoseMetrics::from_errors(&errors)?;
         let ci = MetricIntervals::bootstrap(&errors, 1000, 0)?;

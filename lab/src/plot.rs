@@ -68,12 +68,13 @@ pub fn histograms(path: &Path, series: &[(&[f64], Rgb<u8>)], max: f64, bins: usi
             img.put_pixel(x, y, GREY);
         }
     }
-    let bar = 24 / series.len().max(1) as u32;
+    // A 4-px gap between bins keeps each bin's bars together.
+    let bar = 20 / series.len().max(1) as u32;
     for (s, (c, (_, colour))) in counts.iter().zip(series).enumerate() {
         for (b, &n) in c.iter().enumerate() {
             let h = (n as f64 / tallest * height as f64).round() as u32;
-            let x0 = margin + b as u32 * 24 + s as u32 * bar;
-            for x in x0..x0 + bar.saturating_sub(1) {
+            let x0 = margin + 2 + b as u32 * 24 + s as u32 * bar;
+            for x in x0..x0 + bar {
                 for y in (margin + height - h)..(margin + height) {
                     img.put_pixel(x, y, *colour);
                 }

@@ -353,7 +353,7 @@ impl Report<'_> {
         Ok(format!(
             "\n## Figures (`combined` test split)\n\n\
              ![fired-vertex ratio by azimuth](syncar-ood/fired-polar-combined.png)\n\n\
-             Share of each image's visible vertices (at its true pose) whose feature fires (cosine above τ_r), mean per \
+             Share of each image's visible vertices (at its true pose) whose feature fires (cosine above the adaptation's threshold, 0.8 by default), mean per \
              30° azimuth sector (0° at the top, clockwise; rings at 0.25, 0.5, 0.75, 1): source model (blue, left, mean \
              {:.3}) and adapted model (orange, right, mean {:.3}). The paper's Fig. 1.\n\n\
              ![pose-error histogram](syncar-ood/errors-combined.png)\n\n\
