@@ -14,7 +14,7 @@ use serde_json::{Value, json};
 use support::{Server, free_addrs, http_request, quick_images};
 
 /// W3C WebDriver's key for an element reference.
-const ELEMENT: &str = "element-6066-11e4-a6e3-4b8a-9a9a-e44d3d4c6a24";
+const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
 
 struct Driver {
     child: Child,
@@ -115,6 +115,9 @@ fn a_person_uploads_an_image_and_sees_the_angles_and_the_cuboid() {
     // The browser can take a screenshot of the result (as a person would see it).
     let png = driver.session("GET", "/screenshot", json!({}));
     assert!(png.as_str().is_some_and(|s| s.len() > 1000));
+    if let Some(path) = std::env::var_os("UDAPOSE_WEB_SCREENSHOT_B64") {
+        std::fs::write(path, png.as_str().unwrap()).unwrap(); // base64 PNG, for a person to look at
+    }
 
     // A bad file shows the server's message instead.
     let bad = std::env::temp_dir().join(format!("udapose-web-bad-{}.png", std::process::id()));

@@ -21,6 +21,7 @@ pub struct Server {
     dir: PathBuf,
     pub http_addr: SocketAddr,
     pub grpc_addr: SocketAddr,
+    tls: bool,
 }
 
 /// How to start a server.
@@ -28,6 +29,7 @@ pub struct ServerConfig {
     name: String,
     quick_model: bool,
     args: Vec<String>,
+    tls: bool,
 }
 
 impl ServerConfig {
@@ -35,6 +37,12 @@ impl ServerConfig {
     pub fn quick_model(mut self) -> Self {
         self.quick_model = true;
         self
+    }
+
+    /// Serves TLS with these PEM files (readiness is then polled with `curl -k`).
+    pub fn tls(mut self, cert: &Path, key: &Path) -> Self {
+        self.tls = true;
+        self.arg("--tls-cert").arg(cert.display().to_string()).arg("--tls-key").arg(key.display().to_string())
     }
 
     pub fn arg(mut self, arg: impl Into<String>) -> Self {
@@ -72,7 +80,7 @@ impl ServerConfig {
             .stderr(log)
             .spawn()
             .expect("spawning udapose-server");
-        let mut server = Server { child, dir, http_addr, grpc_addr };
+        let mut server = Server { child, dir, http_addr, grpc_addr, tls: self.tls };
         server.wait_for("/healthz");
         if self.quick_model {
             server.wait_for("/readyz");
@@ -83,7 +91,7 @@ impl ServerConfig {
 
 impl Server {
     pub fn config(name: &str) -> ServerConfig {
-        ServerConfig { name: name.into(), quick_model: false, args: Vec::new() }
+        ServerConfig { name: name.into(), quick_model: false, args: Vec::new(), tls: false }
     }
 
     /// A server with an empty models directory.
@@ -133,7 +141,7 @@ impl Server {
     fn wait_for(&mut self, path: &str) {
         let deadline = Instant::now() + STARTUP_TIMEOUT;
         loop {
-            if let Ok(HttpResponse { status: 200, .. }) = http_request(self.http_addr, "GET", path, &[], b"") {
+            if self.answers_200(path) {
                 return;
             }
             if let Some(status) = self.child.try_wait().expect("polling the server") {
@@ -144,6 +152,17 @@ impl Server {
             }
             thread::sleep(Duration::from_millis(100));
         }
+    }
+}
+
+impl Server {
+    fn answers_200(&self, path: &str) -> bool {
+        if !self.tls {
+            return matches!(http_request(self.http_addr, "GET", path, &[], b""), Ok(HttpResponse { status: 200, .. }));
+        }
+        let url = format!("https://{}{path}", self.http_addr);
+        let out = Command::new("curl").args(["-sk", "-o", "/dev/null", "-w", "%{http_code}", &url]).output();
+        out.is_ok_and(|o| o.stdout == b"200")
     }
 }
 
@@ -233,21 +252,54 @@ pub fn http_request(
     head.push_str("\r\n");
     stream.write_all(head.as_bytes())?;
     let _ = stream.write_all(body);
+    // Read the head, then exactly the body: some servers (chromedriver) keep the connection
+    // open despite `Connection: close`.
     let mut raw = Vec::new();
-    let read = stream.read_to_end(&mut raw);
-    if raw.is_empty() {
-        read?;
-    }
-    let text = String::from_utf8_lossy(&raw).into_owned();
-    let invalid = || std::io::Error::new(std::io::ErrorKind::InvalidData, text.clone());
-    let (head, body) = text.split_once("\r\n\r\n").ok_or_else(invalid)?;
+    let mut buf = [0u8; 16384];
+    let head_end = loop {
+        if let Some(i) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
+            break i + 4;
+        }
+        let n = stream.read(&mut buf)?;
+        if n == 0 {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::UnexpectedEof,
+                String::from_utf8_lossy(&raw).into_owned(),
+            ));
+        }
+        raw.extend_from_slice(&buf[..n]);
+    };
+    let head = String::from_utf8_lossy(&raw[..head_end]).into_owned();
+    let invalid = || std::io::Error::new(std::io::ErrorKind::InvalidData, head.clone());
     let mut lines = head.lines();
     let status =
         lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|c| c.parse().ok()).ok_or_else(invalid)?;
     let headers: Vec<(String, String)> =
         lines.filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_owned(), v.trim().to_owned()))).collect();
-    let chunked = headers.iter().any(|(k, v)| k.eq_ignore_ascii_case("transfer-encoding") && v.contains("chunked"));
-    let body = if chunked { dechunk(body) } else { body.to_owned() };
+    let find = |name: &str| headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.clone());
+    let mut body = raw[head_end..].to_vec();
+    if let Some(length) = find("content-length").and_then(|v| v.parse::<usize>().ok()) {
+        while body.len() < length {
+            let n = stream.read(&mut buf)?;
+            if n == 0 {
+                break;
+            }
+            body.extend_from_slice(&buf[..n]);
+        }
+        body.truncate(length);
+    } else if find("transfer-encoding").is_some_and(|v| v.contains("chunked")) {
+        while !body.ends_with(b"0\r\n\r\n") {
+            let n = stream.read(&mut buf)?;
+            if n == 0 {
+                break;
+            }
+            body.extend_from_slice(&buf[..n]);
+        }
+        body = dechunk(&String::from_utf8_lossy(&body)).into_bytes();
+    } else {
+        stream.read_to_end(&mut body)?;
+    }
+    let body = String::from_utf8_lossy(&body).into_owned();
     Ok(HttpResponse { status, headers, body })
 }
 
