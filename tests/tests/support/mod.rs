@@ -99,6 +99,11 @@ impl Server {
         Server::config(name).start()
     }
 
+    /// The server's `--store` directory.
+    pub fn store_dir(&self) -> PathBuf {
+        self.dir.join("state")
+    }
+
     /// `http://host:port` of the gRPC listener.
     pub fn grpc_endpoint(&self) -> String {
         format!("http://{}", self.grpc_addr)
