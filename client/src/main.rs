@@ -113,9 +113,10 @@ async fn estimate(
     inputs: &[PathBuf],
 ) -> Result<()> {
     let files = expand(inputs)?;
+    let width = files.iter().map(|f| f.display().to_string().len() + 3).max().unwrap_or(0).max("IMAGE".len());
     if !json {
         println!(
-            "{:30}  {:>9}  {:>9}  {:>8}  {:>8}  {:>6}  VERSION",
+            "{:width$}  {:>9}  {:>9}  {:>8}  {:>8}  {:>6}  VERSION",
             "IMAGE", "AZIMUTH", "ELEVATION", "THETA", "DISTANCE", "SCORE"
         );
     }
@@ -136,7 +137,7 @@ async fn estimate(
         .await;
         match result {
             Ok(response) if json => println!("{}", response_json(&name, &response)),
-            Ok(response) => print_rows(&name, &response),
+            Ok(response) => print_rows(&name, &response, width),
             Err(e) => {
                 failed += 1;
                 eprintln!("{name}: {e:#}");
@@ -194,11 +195,11 @@ fn parse_box(s: &str) -> Result<BoundingBox, String> {
     }
 }
 
-fn print_rows(name: &str, response: &EstimateResponse) {
+fn print_rows(name: &str, response: &EstimateResponse, width: usize) {
     for (i, p) in response.estimates.iter().enumerate() {
         let label = if response.estimates.len() > 1 { format!("{name}#{i}") } else { name.to_owned() };
         println!(
-            "{label:30}  {:>8.1}°  {:>8.1}°  {:>7.1}°  {:>8.3}  {:>6.3}  {}",
+            "{label:width$}  {:>8.1}°  {:>8.1}°  {:>7.1}°  {:>8.3}  {:>6.3}  {}",
             p.azimuth_deg, p.elevation_deg, p.theta_deg, p.distance, p.score, p.model_version
         );
     }
