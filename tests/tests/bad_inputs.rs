@@ -95,6 +95,8 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
     expect(post("/v1/pose/car?bbox=1,2,3", &good), 400, "INVALID_ARGUMENT", "bad bbox");
     expect(post("/v1/pose/car?bbox=-10,0,50,50", &good), 400, "INVALID_ARGUMENT", "leaves the 160x64 image");
     expect(post("/v1/pose/car", &vec![0u8; LIMIT + 1]), 413, "RESOURCE_EXHAUSTED", "over the limit");
+    // A deadline shorter than the batching delay (5 ms) passes before the estimate starts.
+    expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
     expect(server.request("POST", "/v1/pose/car", &[], &good), 401, "UNAUTHENTICATED", "missing bearer token");
     let wrong = server.request("POST", "/v1/pose/car", &[("Authorization", "Bearer nope")], &good);
     expect(wrong, 401, "UNAUTHENTICATED", "invalid bearer token");
@@ -114,6 +116,7 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
         "udapose_errors_total{code=\"NOT_FOUND\"}",
         "udapose_errors_total{code=\"RESOURCE_EXHAUSTED\"}",
         "udapose_errors_total{code=\"UNAUTHENTICATED\"}",
+        "udapose_errors_total{code=\"DEADLINE_EXCEEDED\"}",
     ] {
         assert!(metrics.contains(needle), "{needle} not in\n{metrics}");
     }
