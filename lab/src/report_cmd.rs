@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
@@ -212,7 +212,11 @@ impl Report<'_> {
         }
         eprintln!("== {name}: udapose-lab {}", args.join(" "));
         let started = Instant::now();
-        let status = Command::new(std::env::current_exe()?).args(args).status()?;
+        let exe = std::env::current_exe().context("locating udapose-lab")?;
+        let status = Command::new(&exe)
+            .args(args)
+            .status()
+            .with_context(|| format!("starting {} for stage {name}", exe.display()))?;
         if !status.success() {
             bail!("stage {name} failed ({status})");
         }
