@@ -38,29 +38,36 @@ fn digest(dir: &Path) -> Vec<(String, Vec<u8>)> {
     files
 }
 
+/// `udapose-lab report` on the quick profile, `combined` only (adapted, oracle and ablation).
+fn run_report(data: &Path, source: &Path, work: &Path, out: &Path) -> (bool, String) {
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (data, source, work, out) = (s(data), s(source), s(work), s(out));
+    lab(&[
+        "report",
+        "--profile",
+        "quick",
+        "--data",
+        &data,
+        "--source",
+        &source,
+        "--work",
+        &work,
+        "--domains",
+        "combined",
+        "--ablation",
+        "combined",
+        "--out",
+        &out,
+    ])
+}
+
 #[test]
 fn quick_report_adapts_combined_without_collapsing() {
     let (data, source) = (env_path("UDAPOSE_QUICK_DATA"), env_path("UDAPOSE_QUICK_MODEL"));
     let before = digest(&source);
     let work = tmp("report");
     let out = work.join("reports/syncar-ood.json");
-    let (ok, log) = lab(&[
-        "report",
-        "--profile",
-        "quick",
-        "--data",
-        data.to_str().unwrap(),
-        "--source",
-        source.to_str().unwrap(),
-        "--work",
-        work.to_str().unwrap(),
-        "--domains",
-        "combined",
-        "--ablation",
-        "combined",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (ok, log) = run_report(&data, &source, &work, &out);
     assert!(ok, "report failed:\n{log}");
     assert_eq!(before, digest(&source), "the source model directory changed");
 
@@ -102,23 +109,7 @@ fn quick_report_adapts_combined_without_collapsing() {
     }
 
     // Cached: a second run starts no stage and writes the same numbers.
-    let (ok, log) = lab(&[
-        "report",
-        "--profile",
-        "quick",
-        "--data",
-        data.to_str().unwrap(),
-        "--source",
-        source.to_str().unwrap(),
-        "--work",
-        work.to_str().unwrap(),
-        "--domains",
-        "combined",
-        "--ablation",
-        "combined",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (ok, log) = run_report(&data, &source, &work, &out);
     assert!(ok && !log.contains("=="), "{log}");
     assert_eq!(read(&out)["domains"], report["domains"]);
 }
