@@ -35,7 +35,8 @@ const DOMAINS: &[&str] = &[
     "extreme-l2",
 ];
 
-/// Domains that also get the global-filter ablation: combined, occ-l1 and the 5 corruptions.
+/// Domains that also get the global-filter ablation, and whose gap closed the issue checks:
+/// combined, occ-l1 and the 5 corruptions.
 const ABLATION: &[&str] = DOMAINS.split_at(8).0.split_at(1).1;
 
 /// Gap closed is n/a below this oracle − source difference (BENCHMARK.md §6).
@@ -308,15 +309,8 @@ impl Report<'_> {
         if let (Some(s), Some(a)) = (acc("combined", "source"), acc("combined", "adapted")) {
             md.push_str(&format!("- combined: adapted − source = {:+.3} (target ≥ +0.15)\n", a - s));
         }
-        for d in [
-            "combined",
-            "occ-l1",
-            "corrupt/gaussian_noise",
-            "corrupt/glass_blur",
-            "corrupt/fog",
-            "corrupt/contrast",
-            "corrupt/speckle_noise",
-        ] {
+        // The issue's gap-closed domains are the ablation's.
+        for &d in ABLATION {
             match domains.get(d).map(|e| (e["gap_closed"].as_f64(), acc(d, "source"), acc(d, "adapted"))) {
                 Some((Some(g), _, _)) => md.push_str(&format!("- {d}: gap closed {g:.2} (target ≥ 0.6)\n")),
                 Some((None, Some(s), Some(a))) if acc(d, "oracle").is_some() => {
