@@ -6,7 +6,7 @@ use std::{env, fs, path::PathBuf};
 
 use protox::prost::Message;
 
-const PROTOS: &[&str] = &["udapose/v1/models.proto", "udapose/v1/pose.proto"];
+const PROTOS: &[&str] = &["udapose/v1/adapt.proto", "udapose/v1/models.proto", "udapose/v1/pose.proto"];
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     for proto in PROTOS {
