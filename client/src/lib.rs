@@ -1,5 +1,11 @@
-//! Client for a udapose server's gRPC API: models, estimates (unary, with retries on
-//! UNAVAILABLE), and a bidirectional stream for video frames.
+//! Client for a udapose server's gRPC API: models and their versions, estimates (unary, with
+//! retries on UNAVAILABLE), a bidirectional stream for video frames, and online adaptation
+//! (uploading target images, adaptation jobs; see [`Client::stream_targets`]).
+//!
+//! Only idempotent calls are retried (ARCHITECTURE.md "Service contract"): estimates, reads,
+//! uploads (an image's id is its sha256), `StartJob` with a `client_job_id`, and
+//! `Activate`/`Rollback` with an `expected_generation`. Streams (`StreamTargets`, `WatchJob`)
+//! reconnect and resume where they broke off.
 //!
 //! ```no_run
 //! # async fn run() -> Result<(), udapose_client::Error> {
@@ -12,6 +18,8 @@
 //! # }
 //! ```
 
+mod adapt;
+
 use std::time::Duration;
 
 use tokio_stream::Stream;
@@ -22,11 +30,16 @@ use tonic::{
 };
 use tonic_types::StatusExt;
 use udapose_proto::v1::{
-    DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, estimate_request::Input,
+    ActivateRequest, DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, ListVersionsRequest,
+    RollbackRequest, adaptation_service_client::AdaptationServiceClient, estimate_request::Input,
     model_service_client::ModelServiceClient, pose_service_client::PoseServiceClient,
 };
 
-pub use udapose_proto::v1::{BoundingBox, ModelDescription, ModelInfo, PoseEstimate, RawImage};
+pub use adapt::{JobEvents, Upload, Uploads, buffer_full, is_terminal, new_client_job_id, state_name};
+pub use udapose_proto::v1::{
+    ActivationEntry, AdaptOverrides, BoundingBox, GateCriterion, Job, JobEvent, JobState, ListVersionsResponse,
+    ModelDescription, ModelInfo, PoseEstimate, RawImage, TargetAck, VersionInfo, target_ack,
+};
 
 /// How long to wait for a TCP connection before giving up on an endpoint.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(1);
@@ -34,6 +47,8 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(1);
 const BACKOFF: Duration = Duration::from_millis(100);
 /// The longest a server's retry hint may make us wait.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
+/// The longest pause before resending images the server rejected with BUFFER_FULL.
+const MAX_BUFFER_FULL_BACKOFF: Duration = Duration::from_secs(30);
 
 /// What can go wrong talking to a server.
 #[derive(Debug, thiserror::Error)]
@@ -55,6 +70,9 @@ pub enum Error {
     /// The server's answer (not a `#[source]`: its message is already in this one).
     #[error("{:?}: {}", .0.code(), .0.message())]
     Rpc(tonic::Status),
+    /// The server broke the protocol (e.g. an ack for an image that was not sent).
+    #[error("protocol error: {0}")]
+    Protocol(String),
 }
 
 impl From<tonic::Status> for Error {
@@ -85,10 +103,17 @@ pub struct ClientOptions {
     pub ca_cert: Option<Vec<u8>>,
     /// The name to verify the server's certificate against (default: the endpoint's host).
     pub tls_domain: Option<String>,
-    /// Retries of an idempotent call that met UNAVAILABLE (or a transport error).
+    /// Retries of an idempotent call that met UNAVAILABLE (or a transport error); for a stream,
+    /// reconnections in a row without progress.
     pub retries: u32,
     /// Connect eagerly (fail fast) rather than on the first call.
     pub eager: bool,
+    /// How often an image rejected with BUFFER_FULL is resent (after a pause) before its
+    /// REJECTED ack is final.
+    pub buffer_full_retries: u32,
+    /// The first pause before resending images rejected with BUFFER_FULL; doubled per resend
+    /// of the same image, at most 30 s.
+    pub buffer_full_backoff: Duration,
 }
 
 impl ClientOptions {
@@ -100,6 +125,8 @@ impl ClientOptions {
             tls_domain: None,
             retries: 4,
             eager: true,
+            buffer_full_retries: 6,
+            buffer_full_backoff: Duration::from_secs(1),
         }
     }
 }
@@ -109,8 +136,11 @@ impl ClientOptions {
 pub struct Client {
     models: ModelServiceClient<Channel>,
     poses: PoseServiceClient<Channel>,
+    adapt: AdaptationServiceClient<Channel>,
     token: Option<MetadataValue<tonic::metadata::Ascii>>,
     retries: u32,
+    buffer_full_retries: u32,
+    buffer_full_backoff: Duration,
 }
 
 impl Client {
@@ -155,9 +185,12 @@ impl Client {
         };
         Ok(Client {
             models: ModelServiceClient::new(channel.clone()),
-            poses: PoseServiceClient::new(channel),
+            poses: PoseServiceClient::new(channel.clone()),
+            adapt: AdaptationServiceClient::new(channel),
             token,
             retries: options.retries,
+            buffer_full_retries: options.buffer_full_retries,
+            buffer_full_backoff: options.buffer_full_backoff,
         })
     }
 
@@ -183,6 +216,87 @@ impl Client {
         let response =
             self.retrying(|| async { self.models.clone().describe_model(self.request(message.clone())).await }).await?;
         Ok(response.into_inner())
+    }
+
+    /// Every complete version of `category` (by id) and its activation log (newest, i.e.
+    /// active, first).
+    pub async fn list_versions(&self, category: &str) -> Result<ListVersionsResponse, Error> {
+        let message = ListVersionsRequest { category: category.into() };
+        let response =
+            self.retrying(|| async { self.models.clone().list_versions(self.request(message.clone())).await }).await?;
+        Ok(response.into_inner())
+    }
+
+    /// Makes `version` the active one (a new generation of the activation log). Retried on
+    /// UNAVAILABLE only with `expected_generation` (then a retry cannot activate twice); a
+    /// retry answered ABORTED whose earlier attempt did succeed (its reply lost) returns that
+    /// attempt's entry.
+    pub async fn activate(
+        &self,
+        category: &str,
+        version: &str,
+        reason: &str,
+        expected_generation: Option<u64>,
+    ) -> Result<ActivationEntry, Error> {
+        let message = ActivateRequest {
+            category: category.into(),
+            version: version.into(),
+            reason: reason.into(),
+            expected_generation,
+        };
+        let call = || async { self.models.clone().activate(self.request(message.clone())).await };
+        let Some(expected) = expected_generation else {
+            return Ok(call().await?.into_inner());
+        };
+        let landed = |log: &ListVersionsResponse| activation_landed(log, expected, version, reason).cloned();
+        self.retrying_activation(category, call, landed).await
+    }
+
+    /// Re-activates the active entry's `previous` version (a new generation). Retried as
+    /// [`Client::activate`] is: only with `expected_generation`.
+    pub async fn rollback(
+        &self,
+        category: &str,
+        reason: &str,
+        expected_generation: Option<u64>,
+    ) -> Result<ActivationEntry, Error> {
+        let message = RollbackRequest { category: category.into(), reason: reason.into(), expected_generation };
+        let call = || async { self.models.clone().rollback(self.request(message.clone())).await };
+        let Some(expected) = expected_generation else {
+            return Ok(call().await?.into_inner());
+        };
+        let landed = |log: &ListVersionsResponse| rollback_landed(log, expected, reason).cloned();
+        self.retrying_activation(category, call, landed).await
+    }
+
+    /// [`Client::retrying`] for a generation-guarded activation: when a retry is answered
+    /// ABORTED, an earlier attempt may have been applied with its reply lost; `landed` finds
+    /// that attempt's entry in the log.
+    async fn retrying_activation<F, Fut>(
+        &self,
+        category: &str,
+        call: F,
+        landed: impl Fn(&ListVersionsResponse) -> Option<ActivationEntry>,
+    ) -> Result<ActivationEntry, Error>
+    where
+        F: Fn() -> Fut,
+        Fut: Future<Output = Result<tonic::Response<ActivationEntry>, Status>>,
+    {
+        let mut attempt = 0;
+        loop {
+            match call().await {
+                Ok(response) => return Ok(response.into_inner()),
+                Err(status) if retryable(&status) && attempt < self.retries => {
+                    tokio::time::sleep(delay(&status, attempt)).await;
+                    attempt += 1;
+                }
+                Err(status) if status.code() == Code::Aborted && attempt > 0 => {
+                    let log = self.list_versions(category).await;
+                    return log.ok().as_ref().and_then(&landed).ok_or(Error::Rpc(status));
+                }
+                Err(status) => return Err(status.into()),
+            }
+        }
     }
 
     /// Estimates the pose(s) in one image, retrying (estimates are idempotent) while the server
@@ -224,9 +338,37 @@ pub fn request(category: &str, image: Vec<u8>) -> EstimateRequest {
     EstimateRequest { category: category.into(), input: Some(Input::Image(image)), ..Default::default() }
 }
 
-/// UNAVAILABLE is overload or a replica going away; both are worth another try.
+/// UNAVAILABLE is overload or a replica going away, a transport error a connection that broke;
+/// all are worth another try (of an idempotent call).
 fn retryable(status: &Status) -> bool {
-    status.code() == Code::Unavailable
+    status.code() == Code::Unavailable || transport_error(status)
+}
+
+/// A status made on this side from a connection's failure (h2, hyper or I/O error: it has a
+/// source), not one the server sent (those are parsed from trailers and have none).
+fn transport_error(status: &Status) -> bool {
+    std::error::Error::source(status).is_some()
+        && matches!(status.code(), Code::Unknown | Code::Internal | Code::Cancelled | Code::Unavailable)
+}
+
+/// The head of the log is the activation of `version` at `expected + 1` with our reason.
+fn activation_landed<'a>(
+    log: &'a ListVersionsResponse,
+    expected: u64,
+    version: &str,
+    reason: &str,
+) -> Option<&'a ActivationEntry> {
+    let head = log.activations.first()?;
+    (head.generation == expected + 1 && head.version == version && head.reason == reason).then_some(head)
+}
+
+/// The head of the log is, at `expected + 1` with our reason, the `previous` of the entry at
+/// `expected`: what a rollback from `expected` writes.
+fn rollback_landed<'a>(log: &'a ListVersionsResponse, expected: u64, reason: &str) -> Option<&'a ActivationEntry> {
+    let head = log.activations.first()?;
+    let from = log.activations.iter().find(|e| e.generation == expected)?;
+    let landed = head.generation == expected + 1 && !from.previous.is_empty() && head.version == from.previous;
+    (landed && head.reason == reason).then_some(head)
 }
 
 /// The server's RetryInfo hint if it gave one, else exponential backoff; a little jitter so
@@ -271,6 +413,55 @@ mod tests {
         let hinted = Status::with_error_details(Code::Unavailable, "busy", details);
         assert!(delay(&hinted, 0) >= Duration::from_millis(700));
         assert!(retryable(&plain) && !retryable(&Status::invalid_argument("bad")));
+    }
+
+    #[test]
+    fn transport_failures_are_retried_server_answers_are_not() {
+        let reset = std::io::Error::new(std::io::ErrorKind::ConnectionReset, "reset by peer");
+        let broken = Status::from_error(Box::new(reset));
+        assert!(transport_error(&broken) && retryable(&broken), "{broken:?}");
+        // The same codes sent by the server are its answer.
+        assert!(!retryable(&Status::internal("bug")) && !retryable(&Status::unknown("?")));
+        assert!(!retryable(&Status::aborted("stale generation")));
+    }
+
+    fn entry(generation: u64, version: &str, previous: &str, reason: &str) -> ActivationEntry {
+        ActivationEntry {
+            generation,
+            version: version.into(),
+            previous: previous.into(),
+            reason: reason.into(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_lost_activation_reply_is_recognised_in_the_log() {
+        let log = ListVersionsResponse {
+            versions: vec![],
+            activations: vec![
+                entry(2, "job-b", "job-a", "try b"),
+                entry(1, "job-a", "seed-1", ""),
+                entry(0, "seed-1", "", ""),
+            ],
+        };
+        assert_eq!(activation_landed(&log, 1, "job-b", "try b").map(|e| e.generation), Some(2));
+        assert!(activation_landed(&log, 1, "job-b", "someone else's").is_none());
+        assert!(activation_landed(&log, 0, "job-b", "try b").is_none(), "not the generation we expected");
+        assert!(activation_landed(&log, 1, "job-c", "try b").is_none());
+
+        // A rollback from generation 1 re-activates that entry's previous (seed-1).
+        let log = ListVersionsResponse {
+            versions: vec![],
+            activations: vec![
+                entry(2, "seed-1", "job-a", "bad"),
+                entry(1, "job-a", "seed-1", ""),
+                entry(0, "seed-1", "", ""),
+            ],
+        };
+        assert_eq!(rollback_landed(&log, 1, "bad").map(|e| e.version.as_str()), Some("seed-1"));
+        assert!(rollback_landed(&log, 1, "other").is_none());
+        assert!(rollback_landed(&log, 0, "bad").is_none());
     }
 
     #[tokio::test]

@@ -1,15 +1,56 @@
 //! `udapose`: command-line client for a udapose server (gRPC).
 
+mod output;
+
 use std::{
     io::Read,
     path::{Path, PathBuf},
+    process::ExitCode,
 };
 
 use anyhow::{Context, Result, bail};
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use output::{UploadSummary, is_image};
 use serde_json::{Value, json};
-use udapose_client::{BoundingBox, Client, ClientOptions, ModelInfo, PoseEstimate};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use udapose_client::{
+    AdaptOverrides, BoundingBox, Client, ClientOptions, GateCriterion, JobState, ModelInfo, PoseEstimate, is_terminal,
+};
 use udapose_proto::v1::{EstimateRequest, EstimateResponse, estimate_request::Input};
+
+/// The exit status when a followed job ended other than ACTIVATED.
+const JOB_NOT_ACTIVATED: u8 = 3;
+
+const ADAPT_HELP: &str = "\
+Output (stdout, one line each; stable, for scripts):
+  uploaded <N> images to <CATEGORY>: <A> accepted, <D> duplicate, <R> rejected (buffer <B>/<CAP>)
+  rejected <IMAGE>: <REASON>             one per rejected image (REASON: CODE: explanation)
+  job <ID> <STATE> category <CATEGORY> from <SOURCE_VERSION> (generation <G>)
+                                         the job StartJob returned (the last line with --no-follow)
+  #<SEQ> <STATE> round <R>/<MAX> fired <F> change <DEG>° used <U> held-out <H> eta <ETA>[ version <V>][: <MESSAGE>]
+                                         one per job event (change -: no previous round; eta -: unknown)
+    gate <CRITERION> active <A> candidate <C> threshold <T> passed|FAILED[ (<DETAIL>)]
+                                         the validation gate's criteria, when they change
+  job <ID> ACTIVATED version <VERSION>   the last line when the job activated its model
+  job <ID> <STATE>: <REASON>             the last line when it ended REJECTED, SUPERSEDED, FAILED
+                                         or CANCELLED
+The progress bar goes to stderr (only on a terminal). With --json, stdout holds one JSON object
+per line instead: {\"uploads\": ...}, {\"job\": ...}, {\"event\": ...} per event, then
+{\"result\": {\"job_id\", \"state\", \"version\", \"reason\"}}.
+
+Images that met a full buffer (BUFFER_FULL) are resent after a growing pause, and images a
+broken connection left unacknowledged are resent (an image's id is its sha256: a resend is a
+DUPLICATE). If a job of the category is already queued or running, StartJob returns it.
+
+Exit status: 0 the job was ACTIVATED (or, with --no-follow, started); 3 it ended otherwise;
+1 any other error, with one line on stderr: `udapose: error: <what>: <gRPC code>: <message>`.";
+
+const WATCH_HELP: &str = "\
+Output: one `#<SEQ> <STATE> ...` line per event and `gate ...` lines as for `udapose adapt`, then
+`job <ID> ACTIVATED version <VERSION>` or `job <ID> <STATE>: <REASON>`; --json: {\"event\": ...}
+lines, then {\"result\": ...}. Exit status: 0 ACTIVATED, 3 another terminal state, 1 an error.";
 
 /// Talk to a udapose pose-estimation server over gRPC.
 #[derive(Debug, Parser)]
@@ -28,7 +69,8 @@ struct Cli {
     /// Name to verify the server's certificate against (default: the endpoint's host).
     #[arg(long, global = true)]
     tls_domain: Option<String>,
-    /// Retries of a call answered UNAVAILABLE (overloaded), with backoff.
+    /// Retries of a call answered UNAVAILABLE (overloaded) or broken by the network, with
+    /// backoff (only calls that are safe to repeat); for a stream, reconnections in a row.
     #[arg(long, default_value_t = 4, global = true)]
     retries: u32,
     #[command(subcommand)]
@@ -37,11 +79,14 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// List the server's models: category, version being served, and whether it is ready.
+    /// List the server's models: category, version being served, and whether it is ready;
+    /// `models versions|activate|rollback` manage a category's versions.
     Models {
-        /// Print JSON (`{"models": [...]}`) instead of a table.
-        #[arg(long)]
+        /// Print JSON (`{"models": [...]}`, or the subcommand's object) instead of a table.
+        #[arg(long, global = true)]
         json: bool,
+        #[command(subcommand)]
+        action: Option<ModelsCommand>,
     },
     /// Describe one category's model (version, generation, backbone, crop, provenance).
     Describe { category: String },
@@ -59,11 +104,126 @@ enum Command {
         #[arg(required = true)]
         images: Vec<PathBuf>,
     },
+    /// Online adaptation: upload a folder's images as unlabelled target images of a category,
+    /// start an adaptation job, and follow it until its model is activated or not.
+    #[command(after_long_help = ADAPT_HELP)]
+    Adapt(AdaptArgs),
+    /// Adaptation jobs: list, get, watch, cancel.
+    Jobs {
+        /// Print JSON instead of text.
+        #[arg(long, global = true)]
+        json: bool,
+        #[command(subcommand)]
+        action: JobsCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum ModelsCommand {
+    /// A category's versions (VERSION ACTIVE TRAINED_AS JOB) and its activation log, newest first
+    /// (GENERATION VERSION PREVIOUS ACTOR TIME REASON).
+    Versions { category: String },
+    /// Make VERSION the active one. Prints `activated <CATEGORY> version <V> generation <G>
+    /// (previous <P>)`.
+    Activate {
+        category: String,
+        version: String,
+        /// Recorded in the activation log.
+        #[arg(long, default_value = "")]
+        reason: String,
+        /// Activate only if this is the active generation (ABORTED otherwise); makes the call
+        /// safe to retry.
+        #[arg(long, value_name = "G")]
+        expected_generation: Option<u64>,
+    },
+    /// Re-activate the version that was active before the current one. Prints `rolled back
+    /// <CATEGORY> version <V> generation <G> (previous <P>)`.
+    Rollback {
+        category: String,
+        /// Recorded in the activation log.
+        #[arg(long, default_value = "")]
+        reason: String,
+        /// Roll back only if this is the active generation (ABORTED otherwise); makes the call
+        /// safe to retry.
+        #[arg(long, value_name = "G")]
+        expected_generation: Option<u64>,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum JobsCommand {
+    /// Jobs, newest first: JOB CATEGORY STATE ROUND IMAGES(used+held out) VERSION UPDATED REASON.
+    List {
+        /// Only this category's jobs.
+        #[arg(long)]
+        category: Option<String>,
+    },
+    /// One job in detail, with its last event.
+    Get { id: String },
+    /// Follow a job's events until it ends.
+    #[command(after_long_help = WATCH_HELP)]
+    Watch {
+        id: String,
+        /// Only the events after this sequence number (0: all).
+        #[arg(long, default_value_t = 0)]
+        after_seq: u64,
+    },
+    /// Stop a queued or running job (CANCELLED). Prints `job <ID> CANCELLED: <REASON>` (a job
+    /// that had already ended is left as it was and printed as `udapose adapt` does).
+    Cancel {
+        id: String,
+        /// Recorded with the job.
+        #[arg(long, default_value = "")]
+        reason: String,
+    },
+}
+
+#[derive(Debug, Args)]
+struct AdaptArgs {
+    /// The object category the images show (e.g. car).
+    #[arg(long)]
+    category: String,
+    /// A folder of PNG/JPEG/WebP images (not its subfolders), uploaded in name order.
+    #[arg(long, value_name = "DIR")]
+    images: PathBuf,
+    /// Print the job and exit once it is started, without following it.
+    #[arg(long)]
+    no_follow: bool,
+    /// Most EM rounds of the job (default: the server's).
+    #[arg(long, value_name = "N")]
+    max_rounds: Option<u32>,
+    /// The job's learning rate (default: the server's).
+    #[arg(long, value_name = "X")]
+    learning_rate: Option<f64>,
+    /// The job's random seed (default: the server's).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// The id that makes StartJob idempotent (default: a fresh random one): run the command
+    /// again with the same id to get the same job.
+    #[arg(long)]
+    client_job_id: Option<String>,
+    /// How often an image rejected with BUFFER_FULL is resent, after a pause of 1 s doubled
+    /// per resend (at most 30 s), before its rejection is final.
+    #[arg(long, default_value_t = 6, value_name = "N")]
+    buffer_full_retries: u32,
+    /// One JSON object per line instead of text.
+    #[arg(long)]
+    json: bool,
 }
 
 #[tokio::main]
-async fn main() -> Result<()> {
-    let cli = Cli::parse();
+async fn main() -> ExitCode {
+    match run(Cli::parse()).await {
+        Ok(code) => code,
+        Err(e) => {
+            // One line: the context, then the cause (an RPC's: `<gRPC code>: <message>`).
+            eprintln!("udapose: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: Cli) -> Result<ExitCode> {
     let ca_cert = match &cli.ca_cert {
         Some(p) => Some(std::fs::read(p).with_context(|| format!("reading {}", p.display()))?),
         None => None,
@@ -75,10 +235,16 @@ async fn main() -> Result<()> {
         tls_domain: cli.tls_domain.clone(),
         retries: cli.retries,
         eager: cli.endpoint.len() == 1,
+        ..ClientOptions::new("")
+    };
+    let options = match &cli.command {
+        Command::Adapt(a) => ClientOptions { buffer_full_retries: a.buffer_full_retries, ..options },
+        _ => options,
     };
     let client = Client::connect_with(options).await.context("connecting")?;
     match cli.command {
-        Command::Models { json } => {
+        Command::Models { json, action: Some(action) } => models_command(&client, action, json).await?,
+        Command::Models { json, action: None } => {
             let models = client.list_models().await.context("listing models")?;
             if json {
                 println!("{}", models_json(&models));
@@ -101,8 +267,185 @@ async fn main() -> Result<()> {
         Command::Estimate { category, bbox, json, images } => {
             estimate(&client, &category, &bbox, json, &images).await?
         }
+        Command::Adapt(args) => return adapt(&client, args).await,
+        Command::Jobs { json, action } => return jobs_command(&client, action, json).await,
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+async fn models_command(client: &Client, action: ModelsCommand, json: bool) -> Result<()> {
+    match action {
+        ModelsCommand::Versions { category } => {
+            let v = client.list_versions(&category).await.with_context(|| format!("listing {category}'s versions"))?;
+            if json {
+                println!("{}", output::versions_json(&category, &v));
+            } else {
+                output::versions_lines(&v).iter().for_each(|l| println!("{l}"));
+            }
+        }
+        ModelsCommand::Activate { category, version, reason, expected_generation } => {
+            let entry = client
+                .activate(&category, &version, &reason, expected_generation)
+                .await
+                .with_context(|| format!("activating {category} version {version}"))?;
+            if json {
+                println!("{}", output::activation_json(&entry));
+            } else {
+                println!("{}", output::activation_line("activated", &entry));
+            }
+        }
+        ModelsCommand::Rollback { category, reason, expected_generation } => {
+            let entry = client
+                .rollback(&category, &reason, expected_generation)
+                .await
+                .with_context(|| format!("rolling back {category}"))?;
+            if json {
+                println!("{}", output::activation_json(&entry));
+            } else {
+                println!("{}", output::activation_line("rolled back", &entry));
+            }
+        }
     }
     Ok(())
+}
+
+async fn jobs_command(client: &Client, action: JobsCommand, json: bool) -> Result<ExitCode> {
+    match action {
+        JobsCommand::List { category } => {
+            let jobs = client.list_jobs(category.as_deref()).await.context("listing jobs")?;
+            if json {
+                println!("{}", json!({ "jobs": jobs.iter().map(output::job_json).collect::<Vec<_>>() }));
+            } else {
+                output::jobs_table(&jobs).iter().for_each(|l| println!("{l}"));
+            }
+        }
+        JobsCommand::Get { id } => {
+            let job = client.get_job(&id).await.with_context(|| format!("getting job {id}"))?;
+            if json {
+                println!("{}", output::job_json(&job));
+            } else {
+                output::job_lines(&job).iter().for_each(|l| println!("{l}"));
+            }
+        }
+        JobsCommand::Watch { id, after_seq } => return watch(client, &id, after_seq, json).await,
+        JobsCommand::Cancel { id, reason } => {
+            let job = client.cancel_job(&id, &reason).await.with_context(|| format!("cancelling job {id}"))?;
+            if json {
+                println!("{}", output::job_json(&job));
+            } else {
+                println!("{}", output::job_final_line(&job));
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `udapose adapt`: upload, start a job, follow it.
+async fn adapt(client: &Client, args: AdaptArgs) -> Result<ExitCode> {
+    let files = output::list_images(&args.images)?;
+    let summary = upload(client, &args.category, &files, args.json).await?;
+    if args.json {
+        println!("{}", summary.json());
+    } else {
+        summary.lines().iter().for_each(|l| println!("{l}"));
+    }
+
+    let overrides = AdaptOverrides { max_rounds: args.max_rounds, learning_rate: args.learning_rate, seed: args.seed };
+    let client_job_id = args.client_job_id.unwrap_or_else(udapose_client::new_client_job_id);
+    let job = client
+        .start_job(&args.category, overrides, Some(&client_job_id))
+        .await
+        .with_context(|| format!("starting a job for {}", args.category))?;
+    if args.json {
+        println!("{}", json!({ "job": output::job_json(&job) }));
+    } else {
+        println!("{}", output::job_started_line(&job));
+    }
+    if args.no_follow {
+        return Ok(ExitCode::SUCCESS);
+    }
+    watch(client, &job.job_id, 0, args.json).await
+}
+
+/// Uploads `files` over StreamTargets with a progress bar (on stderr, when it is a terminal).
+async fn upload(client: &Client, category: &str, files: &[PathBuf], json: bool) -> Result<UploadSummary> {
+    let bar = ProgressBar::new(files.len() as u64).with_style(
+        ProgressStyle::with_template("{spinner} uploading [{bar:30}] {pos}/{len} {msg} ({eta})")
+            .expect("a valid template")
+            .progress_chars("=> "),
+    );
+    if json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    // Files are read as the stream takes them (a few at a time), not all at once.
+    let (tx, rx) = mpsc::channel(4);
+    let reader = tokio::spawn({
+        let files = files.to_vec();
+        async move {
+            for file in files {
+                let name = file.file_name().map_or_else(|| file.display().to_string(), |n| n.to_string_lossy().into());
+                let bytes = tokio::fs::read(&file).await.with_context(|| format!("reading {}", file.display()))?;
+                if tx.send((name, bytes)).await.is_err() {
+                    break;
+                }
+            }
+            anyhow::Ok(())
+        }
+    });
+    let mut summary = UploadSummary::new(category);
+    let mut uploads = client.stream_targets(category, ReceiverStream::new(rx));
+    let result = async {
+        while let Some(upload) = uploads.message().await? {
+            summary.add(&upload);
+            bar.set_message(summary.counts());
+            bar.inc(1);
+        }
+        anyhow::Ok(())
+    }
+    .await;
+    bar.finish_and_clear();
+    result.with_context(|| {
+        format!("uploading to {category} ({} of {} images acknowledged)", summary.images, files.len())
+    })?;
+    reader.await.context("the file reader")??;
+    Ok(summary)
+}
+
+/// Follows a job's events to its end; the exit status says whether it was ACTIVATED.
+async fn watch(client: &Client, job_id: &str, after_seq: u64, json: bool) -> Result<ExitCode> {
+    let mut events = client.watch_job(job_id, after_seq).await.with_context(|| format!("watching job {job_id}"))?;
+    let mut last_gate: Vec<GateCriterion> = Vec::new();
+    let mut last = None;
+    while let Some(event) = events.message().await.with_context(|| format!("watching job {job_id}"))? {
+        if json {
+            println!("{}", json!({ "event": output::event_json(&event) }));
+        } else {
+            println!("{}", output::event_line(&event));
+            if !event.gate.is_empty() && event.gate != last_gate {
+                event.gate.iter().for_each(|c| println!("{}", output::gate_line(c)));
+                last_gate = event.gate.clone();
+            }
+        }
+        last = Some(event);
+    }
+    let Some(last) = last.filter(|e| is_terminal(e.state)) else {
+        bail!("job {job_id}'s events ended before the job did");
+    };
+    // The job's reason (e.g. the failed criteria) and version; the event's if it cannot be read.
+    let (version, reason) = match client.get_job(job_id).await {
+        Ok(job) if job.state == last.state => {
+            let reason = if job.reason.is_empty() { last.message.clone() } else { job.reason };
+            let version = if job.version.is_empty() { last.version.clone() } else { job.version };
+            (version, reason)
+        }
+        _ => (last.version.clone(), last.message.clone()),
+    };
+    if json {
+        println!("{}", output::result_json(job_id, last.state, &version, &reason));
+    } else {
+        println!("{}", output::final_line(job_id, last.state, &version, &reason));
+    }
+    Ok(if last.state == JobState::Activated as i32 { ExitCode::SUCCESS } else { ExitCode::from(JOB_NOT_ACTIVATED) })
 }
 
 async fn estimate(
@@ -170,11 +513,6 @@ fn expand(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
         }
     }
     Ok(out)
-}
-
-fn is_image(path: &Path) -> bool {
-    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-    matches!(ext.as_deref(), Some("png" | "jpg" | "jpeg" | "webp"))
 }
 
 fn read_input(path: &Path) -> Result<Vec<u8>> {

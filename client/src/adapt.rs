@@ -1,0 +1,634 @@
+//! Online adaptation: uploading target images over `StreamTargets` (resending what a broken
+//! stream or a full buffer left unacknowledged), and adaptation jobs (start, watch with
+//! reconnection, get, list, cancel).
+
+use std::{
+    collections::{BTreeMap, VecDeque},
+    pin::Pin,
+    task::{Context, Poll},
+    time::Duration,
+};
+
+use sha2::{Digest, Sha256};
+use tokio::sync::mpsc;
+use tokio_stream::{Stream, StreamExt, wrappers::ReceiverStream};
+use tonic::{Status, Streaming};
+use udapose_proto::v1::{
+    AdaptOverrides, CancelJobRequest, GetJobRequest, Job, JobEvent, JobState, ListJobsRequest, StartJobRequest,
+    TargetAck, TargetImage, WatchJobRequest, target_ack,
+};
+
+use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, delay, retryable};
+
+/// Images sent on a `StreamTargets` stream and not yet acknowledged, at most: the server acks
+/// each once it is durable, so a few in flight hide the round trip and the fsync.
+const WINDOW: usize = 8;
+/// How long to wait for the server to end a stream once every image has its ack.
+const CLOSE_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// The outcome of one uploaded image: its final ack (ACCEPTED, DUPLICATE, or REJECTED with a
+/// reason; BUFFER_FULL only once the resends allowed are spent).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Upload {
+    /// The name the caller gave the image (e.g. its file name).
+    pub name: String,
+    pub ack: TargetAck,
+    /// How many times the image was sent (1 unless a broken stream or a full buffer made us
+    /// resend it).
+    pub sends: u32,
+}
+
+/// The uploads of [`Client::stream_targets`], one per image, in the order the images were given.
+/// Ends after the last image's upload, or after an `Err` (the images after it were not all
+/// acknowledged).
+pub struct Uploads(ReceiverStream<Result<Upload, Error>>);
+
+impl Stream for Uploads {
+    type Item = Result<Upload, Error>;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        Pin::new(&mut self.0).poll_next(cx)
+    }
+}
+
+impl Uploads {
+    /// The next upload; `None` once every image has one.
+    pub async fn message(&mut self) -> Result<Option<Upload>, Error> {
+        self.0.next().await.transpose()
+    }
+}
+
+/// A job's events from [`Client::watch_job`], in `seq` order, without gaps or repeats across
+/// reconnections. Ends after the terminal event, or after an `Err`.
+pub struct JobEvents(ReceiverStream<Result<JobEvent, Error>>);
+
+impl Stream for JobEvents {
+    type Item = Result<JobEvent, Error>;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        Pin::new(&mut self.0).poll_next(cx)
+    }
+}
+
+impl JobEvents {
+    /// The next event; `None` after the terminal one.
+    pub async fn message(&mut self) -> Result<Option<JobEvent>, Error> {
+        self.0.next().await.transpose()
+    }
+}
+
+/// A state a job never leaves: ACTIVATED, REJECTED, SUPERSEDED, FAILED or CANCELLED.
+pub fn is_terminal(state: i32) -> bool {
+    matches!(
+        JobState::try_from(state),
+        Ok(JobState::Activated | JobState::Rejected | JobState::Superseded | JobState::Failed | JobState::Cancelled)
+    )
+}
+
+/// The proto name of a job state (`"ACTIVATED"`), or `"UNKNOWN(<n>)"` for a value this client
+/// does not know.
+pub fn state_name(state: i32) -> String {
+    match JobState::try_from(state) {
+        Ok(s) => s.as_str_name().to_owned(),
+        Err(_) => format!("UNKNOWN({state})"),
+    }
+}
+
+/// The server rejected the image only because the category's buffer is full (worth resending
+/// once a job has used buffered images).
+pub fn buffer_full(ack: &TargetAck) -> bool {
+    ack.status == target_ack::Status::Rejected as i32 && ack.reason.starts_with("BUFFER_FULL")
+}
+
+/// A fresh random id for [`Client::start_job`], which makes the call safe to retry.
+pub fn new_client_job_id() -> String {
+    format!("cli-{:032x}", rand::random::<u128>())
+}
+
+impl Client {
+    /// Uploads target images of `category` over one `StreamTargets` stream (reopened when it
+    /// breaks) and yields one [`Upload`] per image, in the order given, once its ack is final.
+    ///
+    /// Images are read from `images` only as the stream can take them (a few are in flight);
+    /// each is kept until acknowledged. When the stream breaks or the server is UNAVAILABLE, the
+    /// images not yet acknowledged are resent on a new stream (harmless: an image's id is its
+    /// sha256, so one already stored comes back DUPLICATE), at most `retries` times in a row
+    /// without progress. Images REJECTED with BUFFER_FULL are resent after a pause that grows
+    /// per resend (`buffer_full_backoff`), at most `buffer_full_retries` times each; no new
+    /// image is sent meanwhile. Other rejections (invalid image, unknown category) are final.
+    ///
+    /// Spawns its work on the current tokio runtime. Dropping the [`Uploads`] stops it.
+    ///
+    /// ```no_run
+    /// # async fn run(client: udapose_client::Client) -> Result<(), udapose_client::Error> {
+    /// let images = vec![("a.png".to_owned(), std::fs::read("a.png").unwrap())];
+    /// let mut uploads = client.stream_targets("car", tokio_stream::iter(images));
+    /// while let Some(upload) = uploads.message().await? {
+    ///     println!("{}: {:?} {}", upload.name, upload.ack.status(), upload.ack.reason);
+    /// }
+    /// # Ok(())
+    /// # }
+    /// ```
+    pub fn stream_targets<S>(&self, category: &str, images: S) -> Uploads
+    where
+        S: Stream<Item = (String, Vec<u8>)> + Send + 'static,
+    {
+        let (out, rx) = mpsc::channel(2 * WINDOW);
+        let (client, category) = (self.clone(), category.to_owned());
+        tokio::spawn(async move {
+            if let Err(e) = upload(&client, &category, Box::pin(images), &out).await {
+                let _ = out.send(Err(e)).await;
+            }
+        });
+        Uploads(ReceiverStream::new(rx))
+    }
+
+    /// Starts an adaptation job on the category's unused buffered images, or returns the job
+    /// already queued or running for it. With `client_job_id` (see [`new_client_job_id`]) the
+    /// call is idempotent and retried on UNAVAILABLE; without, it is sent once.
+    pub async fn start_job(
+        &self,
+        category: &str,
+        overrides: AdaptOverrides,
+        client_job_id: Option<&str>,
+    ) -> Result<Job, Error> {
+        let message = StartJobRequest {
+            category: category.into(),
+            overrides: Some(overrides),
+            client_job_id: client_job_id.unwrap_or_default().into(),
+        };
+        let call = || async { self.adapt.clone().start_job(self.request(message.clone())).await };
+        let response = match client_job_id {
+            Some(id) if !id.is_empty() => self.retrying(call).await?,
+            _ => call().await?,
+        };
+        Ok(response.into_inner())
+    }
+
+    /// The job's events after `after_seq` (0: all), then new ones as they happen, until the
+    /// terminal one. The first call's error (e.g. NOT_FOUND) is returned here; later, when the
+    /// stream breaks (or ends before the terminal event) it is reopened from the last `seq`
+    /// seen, at most `retries` times in a row without an event.
+    pub async fn watch_job(&self, job_id: &str, after_seq: u64) -> Result<JobEvents, Error> {
+        let stream = self.open_watch(job_id, after_seq).await?;
+        let (out, rx) = mpsc::channel(16);
+        let (client, job_id) = (self.clone(), job_id.to_owned());
+        tokio::spawn(async move {
+            if let Err(e) = follow(&client, &job_id, after_seq, stream, &out).await {
+                let _ = out.send(Err(e)).await;
+            }
+        });
+        Ok(JobEvents(ReceiverStream::new(rx)))
+    }
+
+    async fn open_watch(&self, job_id: &str, after_seq: u64) -> Result<Streaming<JobEvent>, Error> {
+        let message = WatchJobRequest { job_id: job_id.into(), after_seq };
+        let response =
+            self.retrying(|| async { self.adapt.clone().watch_job(self.request(message.clone())).await }).await?;
+        Ok(response.into_inner())
+    }
+
+    /// One job, with its last event.
+    pub async fn get_job(&self, job_id: &str) -> Result<Job, Error> {
+        let message = GetJobRequest { job_id: job_id.into() };
+        let response =
+            self.retrying(|| async { self.adapt.clone().get_job(self.request(message.clone())).await }).await?;
+        Ok(response.into_inner())
+    }
+
+    /// Jobs, newest first; only `category`'s when given.
+    pub async fn list_jobs(&self, category: Option<&str>) -> Result<Vec<Job>, Error> {
+        let message = ListJobsRequest { category: category.unwrap_or_default().into() };
+        let response =
+            self.retrying(|| async { self.adapt.clone().list_jobs(self.request(message.clone())).await }).await?;
+        Ok(response.into_inner().jobs)
+    }
+
+    /// Stops a queued or running job (CANCELLED); a finished job comes back unchanged. Sent
+    /// once (not in the contract's list of retried calls).
+    pub async fn cancel_job(&self, job_id: &str, reason: &str) -> Result<Job, Error> {
+        let message = CancelJobRequest { job_id: job_id.into(), reason: reason.into() };
+        Ok(self.adapt.clone().cancel_job(self.request(message)).await?.into_inner())
+    }
+}
+
+/// Whether a stream that failed with `status` is worth reopening.
+fn reconnectable(status: &Status) -> bool {
+    retryable(status)
+}
+
+/// Drives the uploads of [`Client::stream_targets`]; `Ok` once every image has its upload (or
+/// the caller went away).
+async fn upload(
+    client: &Client,
+    category: &str,
+    mut images: Pin<Box<dyn Stream<Item = (String, Vec<u8>)> + Send>>,
+    out: &mpsc::Sender<Result<Upload, Error>>,
+) -> Result<(), Error> {
+    let mut ledger = Ledger::new(client.buffer_full_retries, client.buffer_full_backoff);
+    let mut input_done = false;
+    let mut failures = 0;
+    loop {
+        // A stream is opened with images already queued on it (so a server that reads the
+        // first image before it answers works as well as one that answers at once).
+        if ledger.is_idle() {
+            if input_done {
+                return Ok(());
+            }
+            tokio::select! {
+                biased;
+                () = out.closed() => return Ok(()),
+                image = images.next() => match image {
+                    Some((name, bytes)) => ledger.admit(name, bytes),
+                    None => {
+                        input_done = true;
+                        continue;
+                    }
+                },
+            }
+        }
+        let (tx, rx) = mpsc::channel::<TargetImage>(WINDOW);
+        let opened = async {
+            if let Some(pause) = ledger.pause() {
+                tokio::time::sleep(pause).await;
+                ledger.release_waiting();
+            }
+            while ledger.window_open() {
+                let Some(image) = ledger.send_next(category) else { break };
+                let _ = tx.send(image).await; // never blocks: the channel holds a window
+            }
+            client.adapt.clone().stream_targets(client.request(ReceiverStream::new(rx))).await
+        }
+        .await;
+        let broken = match opened {
+            Err(status) => status,
+            Ok(response) => {
+                let mut acks = response.into_inner();
+                loop {
+                    if let Some(pause) = ledger.pause() {
+                        tokio::time::sleep(pause).await;
+                        ledger.release_waiting();
+                    }
+                    while ledger.window_open() {
+                        let Some(image) = ledger.send_next(category) else { break };
+                        // An error means the call is over; reading the acks says why.
+                        if tx.send(image).await.is_err() {
+                            break;
+                        }
+                    }
+                    let want_input = !input_done && ledger.window_open() && !ledger.has_to_send();
+                    if !ledger.has_in_flight() && !want_input {
+                        if input_done && ledger.is_idle() {
+                            drop(tx);
+                            let _ = tokio::time::timeout(CLOSE_TIMEOUT, async {
+                                while let Ok(Some(_)) = acks.message().await {}
+                            })
+                            .await;
+                            return Ok(());
+                        }
+                        continue;
+                    }
+                    tokio::select! {
+                        biased;
+                        () = out.closed() => return Ok(()),
+                        ack = acks.message(), if ledger.has_in_flight() => match ack {
+                            Ok(Some(ack)) => {
+                                failures = 0;
+                                ledger.acked(ack)?;
+                                for done in ledger.take_ready() {
+                                    if out.send(Ok(done)).await.is_err() {
+                                        return Ok(());
+                                    }
+                                }
+                            }
+                            Ok(None) => {
+                                break Status::unavailable("the server ended the stream before acknowledging every image")
+                            }
+                            Err(status) => break status,
+                        },
+                        image = images.next(), if want_input => match image {
+                            Some((name, bytes)) => ledger.admit(name, bytes),
+                            None => input_done = true,
+                        },
+                    }
+                }
+            }
+        };
+        if !reconnectable(&broken) || failures >= client.retries {
+            return Err(broken.into());
+        }
+        ledger.broken();
+        tokio::time::sleep(delay(&broken, failures)).await;
+        failures += 1;
+    }
+}
+
+/// Drives [`Client::watch_job`]: forwards events, reopens the stream after the last seq seen.
+async fn follow(
+    client: &Client,
+    job_id: &str,
+    after_seq: u64,
+    mut stream: Streaming<JobEvent>,
+    out: &mpsc::Sender<Result<JobEvent, Error>>,
+) -> Result<(), Error> {
+    let mut last = after_seq;
+    let mut failures = 0;
+    loop {
+        let broken = loop {
+            let message = tokio::select! {
+                biased;
+                () = out.closed() => return Ok(()),
+                message = stream.message() => message,
+            };
+            match message {
+                Ok(Some(event)) => {
+                    failures = 0;
+                    if event.seq <= last {
+                        continue; // already seen (a server replaying from an older seq)
+                    }
+                    last = event.seq;
+                    let terminal = is_terminal(event.state);
+                    if out.send(Ok(event)).await.is_err() || terminal {
+                        return Ok(());
+                    }
+                }
+                Ok(None) => {
+                    break Status::unavailable("the server ended the job's event stream before its terminal event");
+                }
+                Err(status) => break status,
+            }
+        };
+        let mut status = broken;
+        loop {
+            if !reconnectable(&status) || failures >= client.retries {
+                return Err(status.into());
+            }
+            tokio::time::sleep(delay(&status, failures)).await;
+            failures += 1;
+            let message = WatchJobRequest { job_id: job_id.into(), after_seq: last };
+            match client.adapt.clone().watch_job(client.request(message)).await {
+                Ok(response) => {
+                    stream = response.into_inner();
+                    break;
+                }
+                Err(s) => status = s,
+            }
+        }
+    }
+}
+
+/// An image on its way, kept (bytes included) until its ack is final.
+#[derive(Debug)]
+struct Pending {
+    /// Position in the caller's sequence.
+    index: usize,
+    name: String,
+    image: Vec<u8>,
+    sha256: String,
+    sends: u32,
+    /// BUFFER_FULL rejections so far.
+    full: u32,
+}
+
+/// The bookkeeping of [`Client::stream_targets`], apart from any I/O: which images are to be
+/// sent, in flight on the current stream (acks come in send order), waiting for buffer space,
+/// or done and waiting for their turn to be yielded in the caller's order.
+#[derive(Debug)]
+struct Ledger {
+    max_full: u32,
+    full_backoff: Duration,
+    next_index: usize,
+    to_send: VecDeque<Pending>,
+    in_flight: VecDeque<Pending>,
+    /// Rejected with BUFFER_FULL; resent after a pause, once nothing is in flight.
+    waiting: Vec<Pending>,
+    done: BTreeMap<usize, Upload>,
+    next_ready: usize,
+}
+
+impl Ledger {
+    fn new(max_full: u32, full_backoff: Duration) -> Self {
+        Ledger {
+            max_full,
+            full_backoff,
+            next_index: 0,
+            to_send: VecDeque::new(),
+            in_flight: VecDeque::new(),
+            waiting: Vec::new(),
+            done: BTreeMap::new(),
+            next_ready: 0,
+        }
+    }
+
+    /// A new image from the caller, queued to be sent.
+    fn admit(&mut self, name: String, image: Vec<u8>) {
+        let sha256 = format!("{:x}", Sha256::digest(&image));
+        self.to_send.push_back(Pending { index: self.next_index, name, image, sha256, sends: 0, full: 0 });
+        self.next_index += 1;
+    }
+
+    /// Whether another image may go out: the window has room and no image waits for buffer
+    /// space (while one does, sending more would only be rejected too).
+    fn window_open(&self) -> bool {
+        self.in_flight.len() < WINDOW && self.waiting.is_empty()
+    }
+
+    fn has_to_send(&self) -> bool {
+        !self.to_send.is_empty()
+    }
+
+    fn has_in_flight(&self) -> bool {
+        !self.in_flight.is_empty()
+    }
+
+    /// Nothing left to send, await or resend.
+    fn is_idle(&self) -> bool {
+        self.to_send.is_empty() && self.in_flight.is_empty() && self.waiting.is_empty()
+    }
+
+    /// The next message to send; the image moves in flight.
+    fn send_next(&mut self, category: &str) -> Option<TargetImage> {
+        let mut pending = self.to_send.pop_front()?;
+        pending.sends += 1;
+        let message = TargetImage { category: category.into(), image: pending.image.clone() };
+        self.in_flight.push_back(pending);
+        Some(message)
+    }
+
+    /// The ack of the oldest image in flight.
+    fn acked(&mut self, ack: TargetAck) -> Result<(), Error> {
+        let Some(mut pending) = self.in_flight.pop_front() else {
+            return Err(Error::Protocol(format!("an ack ({}) for no image in flight", ack.sha256)));
+        };
+        if !ack.sha256.is_empty() && !ack.sha256.eq_ignore_ascii_case(&pending.sha256) {
+            return Err(Error::Protocol(format!(
+                "ack for sha256 {} where {} ({}) was next",
+                ack.sha256, pending.sha256, pending.name
+            )));
+        }
+        if buffer_full(&ack) && pending.full < self.max_full {
+            pending.full += 1;
+            self.waiting.push(pending);
+            return Ok(());
+        }
+        let upload = Upload { name: pending.name, ack, sends: pending.sends };
+        self.done.insert(pending.index, upload);
+        Ok(())
+    }
+
+    /// The stream broke: every image in flight is to be sent again, first.
+    fn broken(&mut self) {
+        while let Some(pending) = self.in_flight.pop_back() {
+            self.to_send.push_front(pending);
+        }
+    }
+
+    /// How long to pause before resending the images rejected with BUFFER_FULL, once nothing is
+    /// in flight (their acks might add to the waiting ones): the backoff of the image rejected
+    /// most often.
+    fn pause(&self) -> Option<Duration> {
+        if !self.in_flight.is_empty() {
+            return None;
+        }
+        let most = self.waiting.iter().map(|p| p.full).max()?;
+        let backoff = self.full_backoff.saturating_mul(2u32.saturating_pow(most.saturating_sub(1)));
+        Some(backoff.min(MAX_BUFFER_FULL_BACKOFF))
+    }
+
+    /// After the pause: the waiting images are sent next, in the caller's order.
+    fn release_waiting(&mut self) {
+        self.to_send.extend(self.waiting.drain(..));
+        self.to_send.make_contiguous().sort_by_key(|p| p.index);
+    }
+
+    /// Uploads whose turn has come (every earlier image has one), in order.
+    fn take_ready(&mut self) -> Vec<Upload> {
+        let mut ready = Vec::new();
+        while let Some(upload) = self.done.remove(&self.next_ready) {
+            ready.push(upload);
+            self.next_ready += 1;
+        }
+        ready
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use target_ack::Status as AckStatus;
+
+    use super::*;
+
+    fn sha(bytes: &[u8]) -> String {
+        format!("{:x}", Sha256::digest(bytes))
+    }
+
+    fn ack(image: &[u8], status: AckStatus, reason: &str) -> TargetAck {
+        TargetAck { sha256: sha(image), status: status as i32, reason: reason.into(), ..Default::default() }
+    }
+
+    fn ledger_with(n: usize) -> Ledger {
+        let mut ledger = Ledger::new(2, Duration::from_millis(100));
+        for i in 0..n {
+            ledger.admit(format!("{i}.png"), vec![i as u8]);
+        }
+        ledger
+    }
+
+    fn send_all(ledger: &mut Ledger) -> Vec<Vec<u8>> {
+        let mut sent = Vec::new();
+        while ledger.window_open() {
+            match ledger.send_next("car") {
+                Some(m) => sent.push(m.image),
+                None => break,
+            }
+        }
+        sent
+    }
+
+    fn names(uploads: &[Upload]) -> Vec<&str> {
+        uploads.iter().map(|u| u.name.as_str()).collect()
+    }
+
+    #[test]
+    fn acks_match_images_in_order_and_the_window_is_bounded() {
+        let mut ledger = ledger_with(WINDOW + 2);
+        let sent = send_all(&mut ledger);
+        assert_eq!(sent.len(), WINDOW, "no more than the window in flight");
+        ledger.acked(ack(&sent[0], AckStatus::Accepted, "")).unwrap();
+        ledger.acked(ack(&sent[1], AckStatus::Duplicate, "")).unwrap();
+        let ready = ledger.take_ready();
+        assert_eq!(names(&ready), ["0.png", "1.png"]);
+        assert_eq!(ready[1].ack.status(), AckStatus::Duplicate);
+        assert_eq!(send_all(&mut ledger), [vec![WINDOW as u8], vec![WINDOW as u8 + 1]]);
+        // An ack for something else than the oldest image in flight is a protocol error.
+        assert!(matches!(ledger.acked(ack(b"other", AckStatus::Accepted, "")), Err(Error::Protocol(_))));
+    }
+
+    #[test]
+    fn a_broken_stream_resends_exactly_the_unacknowledged_images() {
+        let mut ledger = ledger_with(5);
+        let sent = send_all(&mut ledger);
+        ledger.acked(ack(&sent[0], AckStatus::Accepted, "")).unwrap();
+        ledger.acked(ack(&sent[1], AckStatus::Accepted, "")).unwrap();
+        ledger.broken();
+        let resent = send_all(&mut ledger);
+        assert_eq!(resent, [vec![2], vec![3], vec![4]], "the unacknowledged ones, in order");
+        // Image 2 had been stored before the break: the resend is a DUPLICATE, which is final.
+        ledger.acked(ack(&resent[0], AckStatus::Duplicate, "")).unwrap();
+        ledger.acked(ack(&resent[1], AckStatus::Accepted, "")).unwrap();
+        ledger.acked(ack(&resent[2], AckStatus::Rejected, "INVALID_IMAGE: not an image")).unwrap();
+        let ready = ledger.take_ready();
+        assert_eq!(names(&ready), ["0.png", "1.png", "2.png", "3.png", "4.png"]);
+        assert_eq!(ready.iter().map(|u| u.sends).collect::<Vec<_>>(), [1, 1, 2, 2, 2]);
+        assert!(ledger.is_idle());
+    }
+
+    #[test]
+    fn buffer_full_images_wait_then_are_resent_a_bounded_number_of_times() {
+        let mut ledger = ledger_with(3);
+        let sent = send_all(&mut ledger);
+        ledger.acked(ack(&sent[0], AckStatus::Accepted, "")).unwrap();
+        ledger.acked(ack(&sent[1], AckStatus::Rejected, "BUFFER_FULL: 1000 of 1000")).unwrap();
+        assert!(!ledger.window_open(), "nothing new goes out while an image waits for space");
+        assert_eq!(ledger.pause(), None, "not before the acks in flight are in");
+        ledger.acked(ack(&sent[2], AckStatus::Accepted, "")).unwrap();
+        // Image 2 is done but waits for image 1 to be yielded in order.
+        assert_eq!(names(&ledger.take_ready()), ["0.png"]);
+        assert_eq!(ledger.pause(), Some(Duration::from_millis(100)));
+        ledger.release_waiting();
+
+        let resent = send_all(&mut ledger);
+        assert_eq!(resent, [vec![1]]);
+        ledger.acked(ack(&resent[0], AckStatus::Rejected, "BUFFER_FULL: still")).unwrap();
+        assert_eq!(ledger.pause(), Some(Duration::from_millis(200)), "the pause doubles");
+        ledger.release_waiting();
+        let resent = send_all(&mut ledger);
+        // The third BUFFER_FULL (two resends allowed) is final.
+        ledger.acked(ack(&resent[0], AckStatus::Rejected, "BUFFER_FULL: still")).unwrap();
+        let ready = ledger.take_ready();
+        assert_eq!(names(&ready), ["1.png", "2.png"]);
+        assert!(buffer_full(&ready[0].ack) && ready[0].sends == 3);
+        assert!(ledger.is_idle() && ledger.pause().is_none());
+    }
+
+    #[test]
+    fn waiting_images_go_before_new_ones_after_a_break() {
+        let mut ledger = ledger_with(4);
+        let sent = send_all(&mut ledger);
+        ledger.acked(ack(&sent[0], AckStatus::Rejected, "BUFFER_FULL: full")).unwrap();
+        ledger.acked(ack(&sent[1], AckStatus::Accepted, "")).unwrap();
+        ledger.broken(); // 2 and 3 lost with the stream
+        ledger.release_waiting();
+        assert_eq!(send_all(&mut ledger), [vec![0], vec![2], vec![3]]);
+    }
+
+    #[test]
+    fn job_states() {
+        assert!(is_terminal(JobState::Activated as i32) && is_terminal(JobState::Cancelled as i32));
+        assert!(!is_terminal(JobState::Validating as i32) && !is_terminal(99));
+        assert_eq!(state_name(JobState::Superseded as i32), "SUPERSEDED");
+        assert_eq!(state_name(99), "UNKNOWN(99)");
+        let (a, b) = (new_client_job_id(), new_client_job_id());
+        assert!(a.starts_with("cli-") && a.len() == 36 && a != b);
+    }
+}
