@@ -7,6 +7,7 @@ pub mod camera;
 pub mod checkpoint;
 pub mod error;
 pub mod estimator;
+pub mod gate;
 pub mod input;
 pub mod mesh;
 pub mod metrics;

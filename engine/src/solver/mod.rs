@@ -398,8 +398,16 @@ pub fn grid_poses(mesh: &Mesh, crop: &Camera, config: &SolverConfig) -> Result<V
 /// least `min_separation` apart (greedy in loss order). Returns them best first; fewer than `k`
 /// when the grid has no more such poses.
 pub fn multi_pose_init(problem: &Problem, config: &SolverConfig) -> Result<Vec<ScoredPose>> {
+    let scored = grid_losses(problem, config)?;
+    Ok(select_distant(&scored, config.hypotheses, config.min_separation))
+}
+
+/// Every grid pose (in [`SolverConfig::grid_angles`] order, 144 by default) at its own fit
+/// distance, with its loss: what [`multi_pose_init`] selects from. Scored in parallel, one
+/// rasteriser per thread.
+pub fn grid_losses(problem: &Problem, config: &SolverConfig) -> Result<Vec<ScoredPose>> {
     config.validate()?;
-    let scored: Vec<ScoredPose> = config
+    config
         .grid_angles()
         .into_par_iter()
         .map_init(Scratch::default, |scratch, [a, e, t]| {
@@ -407,8 +415,7 @@ pub fn multi_pose_init(problem: &Problem, config: &SolverConfig) -> Result<Vec<S
             let pose = Pose::new(a, e, t, distance);
             Ok(ScoredPose { pose, loss: problem.loss(scratch, &pose)? })
         })
-        .collect::<Result<_>>()?;
-    Ok(select_distant(&scored, config.hypotheses, config.min_separation))
+        .collect()
 }
 
 /// Greedy in loss order: keep a pose when it is at least `min_separation` (geodesic) from every
@@ -432,7 +439,16 @@ pub fn select_distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> V
 /// Render and compare (METHOD.md §6) on a prepared image: [`multi_pose_init`], then each of the
 /// `k` initial poses refined by `config.optimizer` (in parallel).
 pub fn solve(problem: &Problem, config: &SolverConfig) -> Result<Estimate> {
-    let inits = multi_pose_init(problem, config)?;
+    let grid = grid_losses(problem, config)?;
+    solve_from_grid(problem, &grid, config)
+}
+
+/// [`solve`] from grid losses already computed by [`grid_losses`] (for callers that also need
+/// the whole grid, such as the validation gate's score margin): selects the `k` best mutually
+/// distant poses and refines each of them. Gives exactly [`solve`]'s estimate.
+pub fn solve_from_grid(problem: &Problem, grid: &[ScoredPose], config: &SolverConfig) -> Result<Estimate> {
+    config.validate()?;
+    let inits = select_distant(grid, config.hypotheses, config.min_separation);
     let hypotheses: Vec<Hypothesis> = inits
         .par_iter()
         .map_init(Scratch::default, |scratch, init| {
