@@ -23,6 +23,13 @@ pub enum ApiError {
     /// A token without the role: PERMISSION_DENIED / 403.
     #[error("{0}")]
     PermissionDenied(String),
+    /// A stale `expected_generation` or a lost activation race: ABORTED / 409.
+    #[error("{0}")]
+    Aborted(String),
+    /// The request cannot be served in the current state (nothing to roll back to, too few
+    /// buffered images): FAILED_PRECONDITION / 400.
+    #[error("{0}")]
+    FailedPrecondition(String),
     /// The deadline passed before the estimate started: DEADLINE_EXCEEDED / 504.
     #[error("{0}")]
     DeadlineExceeded(String),
@@ -41,6 +48,8 @@ impl ApiError {
             ApiError::Unavailable { .. } => "UNAVAILABLE",
             ApiError::Unauthenticated(_) => "UNAUTHENTICATED",
             ApiError::PermissionDenied(_) => "PERMISSION_DENIED",
+            ApiError::Aborted(_) => "ABORTED",
+            ApiError::FailedPrecondition(_) => "FAILED_PRECONDITION",
             ApiError::DeadlineExceeded(_) => "DEADLINE_EXCEEDED",
             ApiError::Internal(_) => "INTERNAL",
         }
@@ -54,6 +63,8 @@ impl ApiError {
             ApiError::Unavailable { .. } => 503,
             ApiError::Unauthenticated(_) => 401,
             ApiError::PermissionDenied(_) => 403,
+            ApiError::Aborted(_) => 409,
+            ApiError::FailedPrecondition(_) => 400,
             ApiError::DeadlineExceeded(_) => 504,
             ApiError::Internal(_) => 500,
         }
@@ -67,6 +78,8 @@ impl ApiError {
             ApiError::Unavailable { .. } => tonic::Code::Unavailable,
             ApiError::Unauthenticated(_) => tonic::Code::Unauthenticated,
             ApiError::PermissionDenied(_) => tonic::Code::PermissionDenied,
+            ApiError::Aborted(_) => tonic::Code::Aborted,
+            ApiError::FailedPrecondition(_) => tonic::Code::FailedPrecondition,
             ApiError::DeadlineExceeded(_) => tonic::Code::DeadlineExceeded,
             ApiError::Internal(_) => tonic::Code::Internal,
         }
@@ -91,6 +104,18 @@ impl From<udapose_engine::EngineError> for ApiError {
         match e {
             E::EmptyImage { .. } | E::InvalidInput(_) => ApiError::InvalidArgument(e.to_string()),
             other => ApiError::Internal(other.to_string()),
+        }
+    }
+}
+
+impl From<crate::store::StoreError> for ApiError {
+    fn from(e: crate::store::StoreError) -> Self {
+        use crate::store::StoreError as S;
+        match e {
+            S::UnknownVersion { .. } => ApiError::NotFound(e.to_string()),
+            S::Conflict { .. } => ApiError::Aborted(e.to_string()),
+            S::NoPrevious(_) => ApiError::FailedPrecondition(e.to_string()),
+            S::Io { .. } | S::Corrupt { .. } => ApiError::Internal(e.to_string()),
         }
     }
 }

@@ -14,6 +14,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 use udapose_proto::v1::{
     self as pb, DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, ListModelsResponse,
     ModelDescription, ModelInfo,
+    adaptation_service_server::{AdaptationService, AdaptationServiceServer},
     estimate_request::Input,
     model_service_server::{ModelService, ModelServiceServer},
     pose_service_server::{PoseService, PoseServiceServer},
@@ -22,9 +23,11 @@ use udapose_proto::v1::{
 use crate::{
     api::{EstimateAnswer, EstimateInput, ImageInput, PoseAnswer},
     auth::Role,
+    buffer::AckStatus,
     error::ApiError,
+    jobs::{JobEvent, JobState, JobView, Overrides, TargetAck},
     registry::Category,
-    service::Service,
+    service::{ActivationView, Service},
 };
 
 /// Serves until `stop` resolves, then lets in-flight calls finish.
@@ -38,6 +41,7 @@ pub async fn serve(
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<ModelServiceServer<Api>>().await;
     health.set_serving::<PoseServiceServer<Api>>().await;
+    health.set_serving::<AdaptationServiceServer<Api>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(udapose_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
@@ -47,7 +51,8 @@ pub async fn serve(
     let api = Api { service };
     // tonic's default decoding limit (4 MiB) is below the documented 16 MiB.
     let models = ModelServiceServer::new(api.clone()).max_decoding_message_size(max);
-    let poses = PoseServiceServer::new(api).max_decoding_message_size(max);
+    let poses = PoseServiceServer::new(api.clone()).max_decoding_message_size(max);
+    let adaptation = AdaptationServiceServer::new(api).max_decoding_message_size(max);
 
     let mut builder = Server::builder();
     if let Some(tls) = tls {
@@ -59,6 +64,7 @@ pub async fn serve(
         .add_service(reflection)
         .add_service(models)
         .add_service(poses)
+        .add_service(adaptation)
         .serve_with_incoming_shutdown(TcpIncoming::from(listener), stop)
         .await
         .context("serving gRPC")
@@ -176,6 +182,231 @@ impl ModelService for Api {
         self.authorize(&request, Role::Read)?;
         let category = self.service.category(&request.get_ref().category).map_err(|e| self.refuse(e, "grpc"))?;
         Ok(Response::new(describe(category)))
+    }
+
+    async fn list_versions(
+        &self,
+        request: Request<pb::ListVersionsRequest>,
+    ) -> Result<Response<pb::ListVersionsResponse>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let (versions, log) =
+            self.service.versions(&request.get_ref().category).await.map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(pb::ListVersionsResponse {
+            versions: versions
+                .into_iter()
+                .map(|v| pb::VersionInfo {
+                    version: v.version,
+                    trained_as: v.trained_as,
+                    active: v.active,
+                    job_id: v.job_id,
+                })
+                .collect(),
+            activations: log.into_iter().map(to_activation).collect(),
+        }))
+    }
+
+    async fn activate(&self, request: Request<pb::ActivateRequest>) -> Result<Response<pb::ActivationEntry>, Status> {
+        self.authorize(&request, Role::Admin)?;
+        let r = request.into_inner();
+        let view = self
+            .service
+            .activate(&r.category, Some(r.version), r.reason, r.expected_generation, "api")
+            .await
+            .map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(to_activation(view)))
+    }
+
+    async fn rollback(&self, request: Request<pb::RollbackRequest>) -> Result<Response<pb::ActivationEntry>, Status> {
+        self.authorize(&request, Role::Admin)?;
+        let r = request.into_inner();
+        let view = self
+            .service
+            .activate(&r.category, None, r.reason, r.expected_generation, "api")
+            .await
+            .map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(to_activation(view)))
+    }
+}
+
+type AckStream = Pin<Box<dyn Stream<Item = Result<pb::TargetAck, Status>> + Send + 'static>>;
+type EventStream = Pin<Box<dyn Stream<Item = Result<pb::JobEvent, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl AdaptationService for Api {
+    type StreamTargetsStream = AckStream;
+
+    async fn stream_targets(
+        &self,
+        request: Request<Streaming<pb::TargetImage>>,
+    ) -> Result<Response<Self::StreamTargetsStream>, Status> {
+        self.authorize(&request, Role::Write)?;
+        let mut images = request.into_inner();
+        let (tx, rx) = mpsc::channel(16);
+        let service = self.service.clone();
+        tokio::spawn(async move {
+            // In order, one ack per image, each sent once its image is durable.
+            while let Some(image) = images.next().await {
+                let ack = match image {
+                    Ok(t) => match service.put_target(&t.category, t.image.into()).await {
+                        Ok(ack) => to_ack(ack),
+                        Err(e) => pb::TargetAck {
+                            status: pb::target_ack::Status::Rejected as i32,
+                            reason: format!("{}: {e}", e.code_name()),
+                            ..Default::default()
+                        },
+                    },
+                    Err(status) => {
+                        let _ = tx.send(Err(status)).await;
+                        break;
+                    }
+                };
+                if tx.send(Ok(ack)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+
+    async fn start_job(&self, request: Request<pb::StartJobRequest>) -> Result<Response<pb::Job>, Status> {
+        self.authorize(&request, Role::Write)?;
+        let r = request.into_inner();
+        self.service.category(&r.category).map_err(|e| self.refuse(e, "grpc"))?;
+        let o = r.overrides.unwrap_or_default();
+        let overrides = Overrides { max_rounds: o.max_rounds, learning_rate: o.learning_rate, seed: o.seed };
+        let client_job_id = Some(r.client_job_id).filter(|c| !c.is_empty());
+        let jobs = self.service.jobs.clone();
+        let job = tokio::task::spawn_blocking(move || jobs.start_job(&r.category, overrides, client_job_id))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(to_job(job)))
+    }
+
+    type WatchJobStream = EventStream;
+
+    async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let r = request.into_inner();
+        let events =
+            crate::service::watch(&self.service.jobs, r.job_id, r.after_seq).map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(Box::pin(events.map(|e| e.map(to_event).map_err(|e| to_status(&e))))))
+    }
+
+    async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let job = self.service.jobs.get(&request.get_ref().job_id).map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(to_job(job)))
+    }
+
+    async fn list_jobs(&self, request: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let category = Some(request.get_ref().category.as_str()).filter(|c| !c.is_empty());
+        let jobs = self.service.jobs.list(category).into_iter().map(to_job).collect();
+        Ok(Response::new(pb::ListJobsResponse { jobs }))
+    }
+
+    async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+        self.authorize(&request, Role::Admin)?;
+        let r = request.into_inner();
+        let jobs = self.service.jobs.clone();
+        let job = tokio::task::spawn_blocking(move || jobs.cancel(&r.job_id, &r.reason))
+            .await
+            .map_err(|e| Status::internal(e.to_string()))?
+            .map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(to_job(job)))
+    }
+}
+
+fn to_ack(a: TargetAck) -> pb::TargetAck {
+    use pb::target_ack::Status as S;
+    let status = match a.status {
+        AckStatus::Accepted => S::Accepted,
+        AckStatus::Duplicate => S::Duplicate,
+        AckStatus::Rejected => S::Rejected,
+    };
+    pb::TargetAck {
+        sha256: a.sha256,
+        status: status as i32,
+        reason: a.reason,
+        buffered: a.buffered as u32,
+        capacity: a.capacity as u32,
+        job_id: a.job_id.unwrap_or_default(),
+    }
+}
+
+fn to_state(s: JobState) -> pb::JobState {
+    match s {
+        JobState::Queued => pb::JobState::Queued,
+        JobState::Running => pb::JobState::Running,
+        JobState::Validating => pb::JobState::Validating,
+        JobState::Activated => pb::JobState::Activated,
+        JobState::Rejected => pb::JobState::Rejected,
+        JobState::Superseded => pb::JobState::Superseded,
+        JobState::Failed => pb::JobState::Failed,
+        JobState::Cancelled => pb::JobState::Cancelled,
+    }
+}
+
+fn to_event(e: JobEvent) -> pb::JobEvent {
+    pb::JobEvent {
+        job_id: e.job_id,
+        seq: e.seq,
+        state: to_state(e.state) as i32,
+        time: e.time,
+        message: e.message,
+        round: e.round,
+        max_rounds: e.max_rounds,
+        fired_ratio: e.fired_ratio,
+        pose_change_median_deg: e.pose_change_median_deg,
+        images_used: e.images_used,
+        images_held_out: e.images_held_out,
+        eta_seconds: e.eta_seconds,
+        gate: e
+            .gate
+            .into_iter()
+            .map(|c| pb::GateCriterion {
+                name: c.name,
+                active: c.active,
+                candidate: c.candidate,
+                threshold: c.threshold,
+                passed: c.passed,
+                detail: c.detail,
+            })
+            .collect(),
+        version: e.version,
+    }
+}
+
+fn to_job(j: JobView) -> pb::Job {
+    pb::Job {
+        job_id: j.job_id,
+        category: j.category,
+        state: to_state(j.state) as i32,
+        source_version: j.source_version,
+        source_generation: j.source_generation,
+        version: j.version,
+        created: j.created,
+        updated: j.updated,
+        images_used: j.images_used,
+        images_held_out: j.images_held_out,
+        reason: j.reason,
+        client_job_id: j.client_job_id,
+        last_event: Some(to_event(j.last_event)),
+    }
+}
+
+fn to_activation(v: ActivationView) -> pb::ActivationEntry {
+    let a = v.activation;
+    pb::ActivationEntry {
+        category: v.category,
+        generation: v.generation,
+        version: a.version,
+        previous: a.previous.unwrap_or_default(),
+        actor: a.actor,
+        reason: a.reason,
+        time: a.time,
+        job_id: a.job_id.unwrap_or_default(),
     }
 }
 

@@ -12,6 +12,7 @@ use axum::{
     response::{Html, IntoResponse, Response},
     routing::{get, post},
 };
+use serde::Deserialize;
 use serde_json::{Value, json};
 
 use crate::{
@@ -49,7 +50,16 @@ pub fn router(service: Arc<Service>) -> Router {
         .route("/metrics", get(metrics))
         .route("/v1/models", get(list_models))
         .route("/v1/models/{category}", get(describe_model))
+        .route("/v1/models/{category}/versions", get(list_versions))
+        .route("/v1/models/{category}/activate", post(activate))
+        .route("/v1/models/{category}/rollback", post(rollback))
         .route("/v1/pose/{category}", post(estimate))
+        .route("/v1/adapt/{category}/images", post(put_targets))
+        .route("/v1/adapt/{category}/jobs", post(start_job))
+        .route("/v1/jobs", get(list_jobs))
+        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}/events", get(job_events))
+        .route("/v1/jobs/{id}/cancel", post(cancel_job))
         .fallback(not_found)
         // axum's own default (2 MB) is below the documented 16 MiB; multipart reads obey it.
         .layer(DefaultBodyLimit::max(limit))
@@ -181,6 +191,221 @@ async fn estimate(
     };
     let input = EstimateInput { category, image, boxes: query.boxes, frame_id: query.frame_id, timeout: query.timeout };
     service.estimate(input, "http").await.map(Json).map_err(HttpError)
+}
+
+async fn list_versions(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+) -> Result<Json<Value>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let (versions, activations) = service.versions(&category).await.map_err(|e| refuse(&service, e))?;
+    Ok(Json(json!({ "versions": versions, "activations": activations })))
+}
+
+/// The body of `activate` and `rollback` (all optional but `version` for activate).
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ActivateBody {
+    version: Option<String>,
+    #[serde(default)]
+    reason: String,
+    expected_generation: Option<u64>,
+}
+
+fn json_body<T: serde::de::DeserializeOwned + Default>(service: &Service, body: &Bytes) -> Result<T, HttpError> {
+    if body.iter().all(u8::is_ascii_whitespace) {
+        return Ok(T::default());
+    }
+    serde_json::from_slice(body).map_err(|e| refuse(service, ApiError::InvalidArgument(format!("bad JSON body: {e}"))))
+}
+
+async fn activate(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+    body: Bytes,
+) -> Result<Json<crate::service::ActivationView>, HttpError> {
+    authorize(&service, &headers, Role::Admin)?;
+    let b: ActivateBody = json_body(&service, &body)?;
+    let version =
+        b.version.ok_or_else(|| refuse(&service, ApiError::InvalidArgument("the body needs a \"version\"".into())))?;
+    let view = service
+        .activate(&category, Some(version), b.reason, b.expected_generation, "api")
+        .await
+        .map_err(|e| refuse(&service, e))?;
+    Ok(Json(view))
+}
+
+async fn rollback(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+    body: Bytes,
+) -> Result<Json<crate::service::ActivationView>, HttpError> {
+    authorize(&service, &headers, Role::Admin)?;
+    let b: ActivateBody = json_body(&service, &body)?;
+    if b.version.is_some() {
+        return Err(refuse(&service, ApiError::InvalidArgument("rollback takes no version".into())));
+    }
+    let view = service
+        .activate(&category, None, b.reason, b.expected_generation, "api")
+        .await
+        .map_err(|e| refuse(&service, e))?;
+    Ok(Json(view))
+}
+
+/// `POST /v1/adapt/{category}/images`: one image as the raw body, or many as the parts of a
+/// multipart form. 200 with one result per image; `Retry-After` when any met a full buffer.
+async fn put_targets(
+    State(service): State<Arc<Service>>,
+    Path(category): Path<String>,
+    request: Request,
+) -> Result<Response, HttpError> {
+    authorize(&service, request.headers(), Role::Write)?;
+    service.category(&category).map_err(|e| refuse(&service, e))?;
+    let images = read_images(&service, request).await.map_err(|e| refuse(&service, e))?;
+    let mut results = Vec::with_capacity(images.len());
+    for image in images {
+        results.push(service.put_target(&category, image).await.map_err(|e| refuse(&service, e))?);
+    }
+    let full = results.iter().any(|a| a.reason.starts_with("BUFFER_FULL"));
+    let mut response = Json(json!({ "results": results })).into_response();
+    if full {
+        response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_static("10"));
+    }
+    Ok(response)
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StartJobBody {
+    #[serde(default)]
+    overrides: crate::jobs::Overrides,
+    client_job_id: Option<String>,
+}
+
+async fn start_job(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+    body: Bytes,
+) -> Result<Json<crate::jobs::JobView>, HttpError> {
+    authorize(&service, &headers, Role::Write)?;
+    service.category(&category).map_err(|e| refuse(&service, e))?;
+    let b: StartJobBody = json_body(&service, &body)?;
+    let jobs = service.jobs.clone();
+    let job = tokio::task::spawn_blocking(move || jobs.start_job(&category, b.overrides, b.client_job_id))
+        .await
+        .map_err(|e| HttpError(ApiError::Internal(e.to_string())))?
+        .map_err(|e| refuse(&service, e))?;
+    Ok(Json(job))
+}
+
+async fn list_jobs(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    RawQuery(query): RawQuery,
+) -> Result<Json<Value>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let category = query_value(query.as_deref(), "category");
+    Ok(Json(json!({ "jobs": service.jobs.list(category.as_deref()) })))
+}
+
+async fn get_job(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+) -> Result<Json<crate::jobs::JobView>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    service.jobs.get(&id).map(Json).map_err(|e| refuse(&service, e))
+}
+
+/// Server-Sent Events: one `data:` JSON event per job event (`id:` its seq), from `after_seq`
+/// (query) or `Last-Event-ID`, ending after the terminal one.
+async fn job_events(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let after = query_value(query.as_deref(), "after_seq")
+        .or_else(|| headers.get("last-event-id").and_then(|v| v.to_str().ok()).map(str::to_owned))
+        .map(|v| v.parse::<u64>())
+        .transpose()
+        .map_err(|_| refuse(&service, ApiError::InvalidArgument("bad after_seq".into())))?
+        .unwrap_or(0);
+    let events = crate::service::watch(&service.jobs, id, after).map_err(|e| refuse(&service, e))?;
+    let stream = tokio_stream::StreamExt::map(events, |e| {
+        let event = match e {
+            Ok(ev) => axum::response::sse::Event::default()
+                .id(ev.seq.to_string())
+                .event("job")
+                .json_data(&ev)
+                .unwrap_or_else(|_| axum::response::sse::Event::default().comment("unserialisable event")),
+            Err(err) => axum::response::sse::Event::default().event("error").data(err.to_string()),
+        };
+        Ok::<_, std::convert::Infallible>(event)
+    });
+    Ok(axum::response::sse::Sse::new(stream).keep_alive(axum::response::sse::KeepAlive::default()).into_response())
+}
+
+async fn cancel_job(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+) -> Result<Json<crate::jobs::JobView>, HttpError> {
+    authorize(&service, &headers, Role::Admin)?;
+    let reason = query_value(query.as_deref(), "reason").unwrap_or_default();
+    let jobs = service.jobs.clone();
+    tokio::task::spawn_blocking(move || jobs.cancel(&id, &reason))
+        .await
+        .map_err(|e| HttpError(ApiError::Internal(e.to_string())))?
+        .map(Json)
+        .map_err(|e| refuse(&service, e))
+}
+
+fn query_value(query: Option<&str>, key: &str) -> Option<String> {
+    query?.split('&').filter_map(|p| p.split_once('=')).find(|(k, _)| *k == key).map(|(_, v)| percent_decode(v))
+}
+
+/// Every part of a multipart form, or the raw body as one image.
+async fn read_images(service: &Service, request: Request) -> Result<Vec<Bytes>, ApiError> {
+    let limit = service.limits.max_request_bytes;
+    let too_large = || ApiError::TooLarge(format!("request body over the limit of {limit} bytes"));
+    let multipart = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("multipart/form-data"));
+    if !multipart {
+        let body = axum::body::to_bytes(request.into_body(), limit).await.map_err(|_| too_large())?;
+        return Ok(vec![body]);
+    }
+    let mut form = Multipart::from_request(request, &())
+        .await
+        .map_err(|e| ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text())))?;
+    let mut out = Vec::new();
+    loop {
+        match form.next_field().await {
+            Ok(Some(field)) => out.push(field.bytes().await.map_err(|e| {
+                if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                    too_large()
+                } else {
+                    ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))
+                }
+            })?),
+            Ok(None) => break,
+            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large()),
+            Err(e) => return Err(ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))),
+        }
+    }
+    if out.is_empty() {
+        return Err(ApiError::InvalidArgument("the multipart form has no image part".into()));
+    }
+    Ok(out)
 }
 
 /// The body, or the `image` (else first) part of a multipart form, within the size limit.

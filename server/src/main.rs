@@ -3,10 +3,12 @@
 
 mod api;
 mod auth;
+mod buffer;
 mod decode;
 mod error;
 mod grpc;
 mod http;
+mod jobs;
 mod metrics;
 mod openapi;
 mod registry;
@@ -22,9 +24,13 @@ use clap::Parser;
 use tokio::{net::TcpListener, sync::watch};
 use tracing_subscriber::EnvFilter;
 
+use udapose_engine::{adapt::AdaptConfig, gate::GateConfig};
+
 use crate::{
     auth::Tokens,
+    buffer::Buffer,
     decode::DecodeLimits,
+    jobs::{Jobs, JobsConfig},
     metrics::Metrics,
     registry::Registry,
     service::{Limits, Service},
@@ -90,6 +96,14 @@ struct Args {
     /// The PEM private key of --tls-cert.
     #[arg(long, value_name = "PEM", requires = "tls_cert")]
     tls_key: Option<PathBuf>,
+    /// Target images each category's adaptation buffer holds; beyond it an image is refused
+    /// (REJECTED with BUFFER_FULL) until a job has used some.
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u32).range(1..))]
+    buffer_capacity: u32,
+    /// Unclaimed buffered images of a category that start an adaptation job on their own
+    /// (`StartJob` starts one sooner).
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    adapt_min_images: u32,
     /// Listen on non-loopback addresses without a token (otherwise refused).
     #[arg(long)]
     allow_unauthenticated: bool,
@@ -123,7 +137,7 @@ async fn main() -> Result<()> {
         device: runtime.device(),
     };
     let store = Store::open(&args.store).with_context(|| format!("opening the store {}", args.store.display()))?;
-    let registry = Arc::new(Registry::start(store, &args.models, &config, metrics.clone())?);
+    let registry = Arc::new(Registry::start(store.clone(), &args.models, &config, metrics.clone())?);
     if args.poll_store_secs > 0 {
         registry.poll(Duration::from_secs(args.poll_store_secs));
     }
@@ -132,7 +146,20 @@ async fn main() -> Result<()> {
         decode: DecodeLimits { max_side: args.max_image_side, ..DecodeLimits::default() },
         default_timeout: Duration::from_millis(args.timeout_ms),
     };
-    let service = Arc::new(Service::new(registry, limits, metrics, tokens));
+    let jobs = Jobs::start(
+        store.clone(),
+        registry.clone(),
+        Buffer::new(store.root(), args.buffer_capacity as usize),
+        JobsConfig {
+            min_images: args.adapt_min_images as usize,
+            adapt: AdaptConfig::default(),
+            gate: GateConfig::default(),
+            device: runtime.device(),
+            decode: limits.decode,
+        },
+    )
+    .context("starting the adaptation jobs")?;
+    let service = Arc::new(Service::new(registry, limits, metrics, tokens, jobs));
 
     // Bind both before serving either, so a bad address fails fast and both listen once the
     // process reports healthy.

@@ -146,6 +146,9 @@ impl Registry {
             }
         }
         let mut names = store.categories().context("listing the store's categories")?;
+        for name in &names {
+            store.remove_debris(name);
+        }
         for failed in seed_errors.keys() {
             if !names.contains(failed) {
                 names.push(failed.clone());
@@ -179,6 +182,10 @@ impl Registry {
             categories.insert(name, category);
         }
         Ok(Registry { store, categories })
+    }
+
+    pub fn store(&self) -> &Store {
+        &self.store
     }
 
     pub fn get(&self, name: &str) -> Option<&Arc<Category>> {

@@ -6,6 +6,7 @@ use std::{
     time::{Duration, Instant},
 };
 
+use serde::Serialize;
 use tokio::sync::{Semaphore, oneshot};
 use tracing::Instrument;
 
@@ -14,9 +15,10 @@ use crate::{
     auth::Tokens,
     decode::{self, DecodeLimits},
     error::ApiError,
+    jobs::{JobEvent, Jobs, TargetAck},
     metrics::Metrics,
     registry::{Category, Registry},
-    store::valid_category,
+    store::{Activation, valid_category},
     worker::Job,
 };
 
@@ -36,14 +38,22 @@ pub struct Service {
     pub limits: Limits,
     pub metrics: Arc<Metrics>,
     pub tokens: Tokens,
+    /// Target buffers and adaptation jobs.
+    pub jobs: Arc<Jobs>,
     /// Decodes running at once (each may hold a large image in memory).
     decode_slots: Semaphore,
 }
 
 impl Service {
-    pub fn new(registry: Arc<Registry>, limits: Limits, metrics: Arc<Metrics>, tokens: Tokens) -> Self {
+    pub fn new(
+        registry: Arc<Registry>,
+        limits: Limits,
+        metrics: Arc<Metrics>,
+        tokens: Tokens,
+        jobs: Arc<Jobs>,
+    ) -> Self {
         let slots = std::thread::available_parallelism().map_or(2, |n| n.get()) * 2;
-        Service { registry, limits, metrics, tokens, decode_slots: Semaphore::new(slots) }
+        Service { registry, limits, metrics, tokens, jobs, decode_slots: Semaphore::new(slots) }
     }
 
     /// The category, if the name is valid and configured.
@@ -157,6 +167,147 @@ impl Service {
         });
         task.await.map_err(|_| ApiError::InvalidArgument("the image decoder failed on this file".into()))?
     }
+}
+
+/// One version of a category in the store.
+#[derive(Clone, Debug, Serialize)]
+pub struct VersionView {
+    pub version: String,
+    pub trained_as: String,
+    pub active: bool,
+    pub job_id: String,
+}
+
+/// One entry of the activation log.
+#[derive(Clone, Debug, Serialize)]
+pub struct ActivationView {
+    pub category: String,
+    pub generation: u64,
+    #[serde(flatten)]
+    pub activation: Activation,
+}
+
+impl Service {
+    /// The category's versions and activation log (newest first).
+    pub async fn versions(&self, category: &str) -> Result<(Vec<VersionView>, Vec<ActivationView>), ApiError> {
+        let name = self.category(category)?.name.clone();
+        let store = self.registry.store().clone();
+        blocking(move || {
+            let log = store.activations(&name)?;
+            let active = log.first().map(|(_, a)| a.version.clone());
+            let versions = store
+                .versions(&name)?
+                .into_iter()
+                .map(|version| {
+                    let manifest = store.manifest(&name, &version)?;
+                    let job_id = manifest.training.get("job_id").and_then(|j| j.as_str()).unwrap_or("").to_owned();
+                    Ok(VersionView {
+                        active: active.as_deref() == Some(version.as_str()),
+                        trained_as: manifest.version,
+                        version,
+                        job_id,
+                    })
+                })
+                .collect::<Result<_, ApiError>>()?;
+            let log = log
+                .into_iter()
+                .map(|(generation, activation)| ActivationView { category: name.clone(), generation, activation })
+                .collect();
+            Ok((versions, log))
+        })
+        .await
+    }
+
+    /// Activates `version` (`None`: rolls back to the head's previous version) and swaps the
+    /// serving workers to it.
+    pub async fn activate(
+        &self,
+        category: &str,
+        version: Option<String>,
+        reason: String,
+        expected_generation: Option<u64>,
+        actor: &str,
+    ) -> Result<ActivationView, ApiError> {
+        let name = self.category(category)?.name.clone();
+        let store = self.registry.store().clone();
+        let actor = actor.to_owned();
+        let view = blocking(move || {
+            let generation = match version {
+                Some(v) => store.activate(&name, &v, &actor, &reason, expected_generation)?,
+                None => store.rollback(&name, &actor, &reason, expected_generation)?,
+            };
+            let (generation, activation) = store
+                .activations(&name)?
+                .into_iter()
+                .find(|(g, _)| *g == generation)
+                .ok_or_else(|| ApiError::Internal(format!("generation {generation} vanished")))?;
+            Ok(ActivationView { category: name, generation, activation })
+        })
+        .await?;
+        tracing::info!(category = %view.category, version = %view.activation.version, generation = view.generation,
+            actor = %view.activation.actor, "activated");
+        self.registry.refresh();
+        Ok(view)
+    }
+
+    /// Buffers one target image (decoding off the runtime).
+    pub async fn put_target(&self, category: &str, bytes: bytes::Bytes) -> Result<TargetAck, ApiError> {
+        let name = self.category(category)?.name.clone();
+        if bytes.len() > self.limits.max_request_bytes {
+            return Err(ApiError::TooLarge(format!("image over the limit of {} bytes", self.limits.max_request_bytes)));
+        }
+        let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
+        let jobs = self.jobs.clone();
+        blocking(move || Ok(jobs.put_target(&name, &bytes))).await
+    }
+}
+
+/// The job's events after `after_seq`, then new ones as they happen, until the terminal one.
+pub fn watch(
+    jobs: &Arc<Jobs>,
+    id: String,
+    after_seq: u64,
+) -> Result<tokio_stream::wrappers::ReceiverStream<Result<JobEvent, ApiError>>, ApiError> {
+    // Subscribed before the history is read, so no event falls in between.
+    let mut live = jobs.subscribe();
+    let history = jobs.events(&id, after_seq)?;
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    let jobs = jobs.clone();
+    tokio::spawn(async move {
+        let mut last = after_seq;
+        let mut pending = history;
+        loop {
+            for event in pending.drain(..) {
+                if event.seq <= last {
+                    continue;
+                }
+                last = event.seq;
+                let done = event.state.terminal();
+                if tx.send(Ok(event)).await.is_err() || done {
+                    return;
+                }
+            }
+            match live.recv().await {
+                Ok(event) if event.job_id == id => pending.push(event),
+                Ok(_) => {}
+                // Too slow a reader: catch up from the persisted history.
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => match jobs.events(&id, last) {
+                    Ok(events) => pending = events,
+                    Err(e) => {
+                        let _ = tx.send(Err(e)).await;
+                        return;
+                    }
+                },
+                Err(tokio::sync::broadcast::error::RecvError::Closed) => return,
+            }
+        }
+    });
+    Ok(tokio_stream::wrappers::ReceiverStream::new(rx))
+}
+
+/// Runs file-system work off the async runtime.
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| ApiError::Internal(format!("a worker task failed: {e}")))?
 }
 
 fn truncate(s: &str, n: usize) -> String {

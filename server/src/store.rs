@@ -39,7 +39,6 @@ pub enum StoreError {
     UnknownVersion { category: String, version: String },
     #[error("category {category}: generation {found} is active, expected {expected}")]
     Conflict { category: String, expected: u64, found: u64 },
-    #[cfg_attr(not(test), allow(dead_code))]
     #[error("category {0}: nothing to roll back to")]
     NoPrevious(String),
 }
@@ -85,6 +84,10 @@ impl Store {
         let models = root.join("models");
         fs::create_dir_all(&models).map_err(io_err(&models))?;
         Ok(Store { root: root.to_path_buf() })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
     }
 
     fn category_dir(&self, category: &str) -> PathBuf {
@@ -159,6 +162,19 @@ impl Store {
         reason: &str,
         expected_generation: Option<u64>,
     ) -> Result<u64> {
+        self.activate_for_job(category, version, actor, reason, expected_generation, None)
+    }
+
+    /// [`Store::activate`], recording the adaptation job whose gate passed.
+    pub fn activate_for_job(
+        &self,
+        category: &str,
+        version: &str,
+        actor: &str,
+        reason: &str,
+        expected_generation: Option<u64>,
+        job_id: Option<&str>,
+    ) -> Result<u64> {
         self.manifest(category, version)?;
         let head = self.head(category)?;
         let current = head.as_ref().map(|(g, _)| *g);
@@ -174,7 +190,7 @@ impl Store {
             actor: actor.into(),
             reason: reason.into(),
             time: SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()),
-            job_id: None,
+            job_id: job_id.map(str::to_owned),
         };
         let dir = self.activations_dir(category);
         fs::create_dir_all(&dir).map_err(io_err(&dir))?;
@@ -188,8 +204,90 @@ impl Store {
         }
     }
 
+    /// The activation log, newest first.
+    pub fn activations(&self, category: &str) -> Result<Vec<(u64, Activation)>> {
+        let dir = self.activations_dir(category);
+        if !dir.is_dir() {
+            return Ok(Vec::new());
+        }
+        let mut out = Vec::new();
+        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
+            let name = entry.map_err(io_err(&dir))?.file_name();
+            let Some(generation) = name.to_str().and_then(|n| n.strip_suffix(".json")).and_then(|n| n.parse().ok())
+            else {
+                continue;
+            };
+            let path = dir.join(activation_name(generation));
+            let text = fs::read_to_string(&path).map_err(io_err(&path))?;
+            let activation = serde_json::from_str(&text)
+                .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })?;
+            out.push((generation, activation));
+        }
+        out.sort_by_key(|a| std::cmp::Reverse(a.0));
+        Ok(out)
+    }
+
+    /// The complete versions of a category (manifest present), sorted by id.
+    pub fn versions(&self, category: &str) -> Result<Vec<String>> {
+        let dir = self.category_dir(category).join("versions");
+        if !dir.is_dir() {
+            return Ok(Vec::new());
+        }
+        let mut out = Vec::new();
+        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
+            let entry = entry.map_err(io_err(&dir))?;
+            if let Some(name) = entry.file_name().to_str().filter(|n| !n.starts_with('.'))
+                && entry.path().join(MANIFEST).is_file()
+            {
+                out.push(name.to_owned());
+            }
+        }
+        out.sort();
+        Ok(out)
+    }
+
+    /// Writes a new version: `write` fills a temporary directory (the manifest last), which is
+    /// synced and renamed into place, so the version appears complete or not at all. A crash
+    /// leaves a dot-named temporary directory that nothing reads ([`Store::remove_debris`]).
+    pub fn put_version(
+        &self,
+        category: &str,
+        version: &str,
+        write: impl FnOnce(&Path) -> std::result::Result<(), String>,
+    ) -> Result<PathBuf> {
+        let target = self.version_dir(category, version);
+        let parent = target.parent().expect("a version directory has a parent").to_path_buf();
+        fs::create_dir_all(&parent).map_err(io_err(&parent))?;
+        let tmp = parent.join(format!(".{version}.{}.{}.tmp", std::process::id(), nanos()));
+        let result = (|| {
+            write(&tmp).map_err(|reason| StoreError::Corrupt { path: tmp.display().to_string(), reason })?;
+            for entry in fs::read_dir(&tmp).map_err(io_err(&tmp))? {
+                let path = entry.map_err(io_err(&tmp))?.path();
+                File::open(&path).and_then(|f| f.sync_all()).map_err(io_err(&path))?;
+            }
+            File::open(&tmp).and_then(|f| f.sync_all()).map_err(io_err(&tmp))?;
+            fs::rename(&tmp, &target).map_err(io_err(&target))?;
+            File::open(&parent).and_then(|f| f.sync_all()).map_err(io_err(&parent))
+        })();
+        if result.is_err() {
+            let _ = fs::remove_dir_all(&tmp);
+        }
+        result.map(|()| target)
+    }
+
+    /// Removes the temporary directories a crash left behind in `category`'s versions.
+    pub fn remove_debris(&self, category: &str) {
+        let dir = self.category_dir(category).join("versions");
+        for entry in fs::read_dir(&dir).into_iter().flatten().flatten() {
+            let name = entry.file_name();
+            if name.to_str().is_some_and(|n| n.starts_with('.') && n.ends_with(".tmp")) {
+                tracing::info!("removing debris {}", entry.path().display());
+                let _ = fs::remove_dir_all(entry.path());
+            }
+        }
+    }
+
     /// Re-activates the active entry's `previous` version.
-    #[cfg_attr(not(test), allow(dead_code))] // the Rollback API arrives with adaptation (issue 7)
     pub fn rollback(&self, category: &str, actor: &str, reason: &str, expected_generation: Option<u64>) -> Result<u64> {
         let (generation, head) = self.head(category)?.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
         let previous = head.previous.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
@@ -262,7 +360,7 @@ fn copy_version(seed: &Path, target: &Path) -> Result<()> {
 
 /// Writes `bytes` to `path` only if `path` does not exist: a synced temporary file hard-linked
 /// into place (atomic and exclusive). Returns false when `path` already existed.
-fn create_only(path: &Path, bytes: &[u8]) -> io::Result<bool> {
+pub(crate) fn create_only(path: &Path, bytes: &[u8]) -> io::Result<bool> {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
     let tmp = path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()));
     let result = (|| {
@@ -284,7 +382,7 @@ fn create_only(path: &Path, bytes: &[u8]) -> io::Result<bool> {
     result
 }
 
-fn nanos() -> u128 {
+pub(crate) fn nanos() -> u128 {
     SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos())
 }
 
