@@ -156,6 +156,7 @@ struct Memo {
     spec: JobSpec,
     last: JobEvent,
     cancel: Arc<AtomicBool>,
+    cancel_reason: String,
 }
 
 #[derive(Default)]
@@ -233,7 +234,10 @@ impl Jobs {
             let id = spec.job_id.clone();
             let last = events.last().cloned().unwrap_or_else(|| first_event(&spec));
             let state = if events.is_empty() { None } else { Some(last.state) };
-            self.lock().jobs.insert(id.clone(), Memo { spec: spec.clone(), last, cancel: Default::default() });
+            self.lock().jobs.insert(
+                id.clone(),
+                Memo { spec: spec.clone(), last, cancel: Default::default(), cancel_reason: String::new() },
+            );
             match state {
                 Some(s) if s.terminal() => self.release(&spec),
                 Some(JobState::Validating) if self.activated_by(&spec)? => {
@@ -402,7 +406,9 @@ impl Jobs {
         write().map_err(|e| ApiError::Internal(format!("writing job {}: {e}", spec.job_id)))?;
         let id = spec.job_id.clone();
         let first = first_event(&spec);
-        inner.jobs.insert(id.clone(), Memo { spec, last: first, cancel: Default::default() });
+        inner
+            .jobs
+            .insert(id.clone(), Memo { spec, last: first, cancel: Default::default(), cancel_reason: String::new() });
         drop(inner);
         self.append(&id, JobState::Queued, |e| e.message = "queued".into())
             .map_err(|e| ApiError::Internal(format!("{e:#}")))?;
@@ -418,6 +424,9 @@ impl Jobs {
     fn append(&self, id: &str, state: JobState, edit: impl FnOnce(&mut JobEvent)) -> Result<JobEvent> {
         let mut inner = self.lock();
         let memo = inner.jobs.get_mut(id).ok_or_else(|| anyhow!("no job {id}"))?;
+        if memo.last.state.terminal() {
+            bail!("job {id} already ended {:?}", memo.last.state);
+        }
         let mut event = memo.last.clone();
         event.seq += 1;
         event.state = state;
@@ -459,14 +468,18 @@ impl Jobs {
         if memo.last.state.terminal() {
             return Ok(view(memo));
         }
+        let why = if reason.is_empty() { "cancelled".to_string() } else { format!("cancelled: {reason}") };
+        let memo = inner.jobs.get_mut(id).expect("present above");
+        memo.cancel_reason = why.clone();
         memo.cancel.store(true, Ordering::Release);
         let queued = memo.last.state == JobState::Queued;
         let spec = memo.spec.clone();
         if queued {
             inner.queue.retain(|q| q != id);
-            drop(inner);
-            let why = if reason.is_empty() { "cancelled" } else { reason };
-            self.append(id, JobState::Cancelled, |e| e.message = why.to_string())
+        }
+        drop(inner);
+        if queued {
+            self.append(id, JobState::Cancelled, |e| e.message = why)
                 .map_err(|e| ApiError::Internal(format!("{e:#}")))?;
             self.release(&spec);
         }
@@ -506,9 +519,15 @@ impl Jobs {
         let Some((spec, cancel)) = self.lock().jobs.get(id).map(|m| (m.spec.clone(), m.cancel.clone())) else {
             return;
         };
+        if cancel.load(Ordering::Acquire) {
+            return; // cancelled while queued: already recorded
+        }
         let ended = match self.execute(&spec, &cancel) {
             Ok(()) => return self.finish(&spec),
-            Err(e) if is_cancelled(&e) => self.append(id, JobState::Cancelled, |ev| ev.message = "cancelled".into()),
+            Err(e) if is_cancelled(&e) => {
+                let why = self.lock().jobs.get(id).map(|m| m.cancel_reason.clone()).unwrap_or_default();
+                self.append(id, JobState::Cancelled, |ev| ev.message = why)
+            }
             Err(e) => {
                 tracing::error!(job = %id, "adaptation job failed: {e:#}");
                 self.append(id, JobState::Failed, |ev| ev.message = format!("{e:#}"))

@@ -1,6 +1,9 @@
 //! `udapose-server`: serves pose estimates over gRPC and HTTP from a per-category model
 //! registry, with inference workers that batch requests (ARCHITECTURE.md).
 
+// serde_json's `json!` recurses once per token tree; the OpenAPI document needs more than 128.
+#![recursion_limit = "256"]
+
 mod api;
 mod auth;
 mod buffer;

@@ -261,6 +261,7 @@ impl Store {
         let tmp = parent.join(format!(".{version}.{}.{}.tmp", std::process::id(), nanos()));
         let result = (|| {
             write(&tmp).map_err(|reason| StoreError::Corrupt { path: tmp.display().to_string(), reason })?;
+            failpoint("save-version");
             for entry in fs::read_dir(&tmp).map_err(io_err(&tmp))? {
                 let path = entry.map_err(io_err(&tmp))?.path();
                 File::open(&path).and_then(|f| f.sync_all()).map_err(io_err(&path))?;
@@ -380,6 +381,17 @@ pub(crate) fn create_only(path: &Path, bytes: &[u8]) -> io::Result<bool> {
     })();
     let _ = fs::remove_file(&tmp);
     result
+}
+
+/// Crash-test hook: with `UDAPOSE_FAILPOINT=<name>` the process stops for good at the point of
+/// that name (logged), so a test can `kill -9` it exactly there.
+pub(crate) fn failpoint(name: &str) {
+    if std::env::var("UDAPOSE_FAILPOINT").is_ok_and(|v| v == name) {
+        tracing::warn!("failpoint {name}: stopped here");
+        loop {
+            std::thread::sleep(std::time::Duration::from_secs(3600));
+        }
+    }
 }
 
 pub(crate) fn nanos() -> u128 {

