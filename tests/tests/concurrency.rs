@@ -73,6 +73,16 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
         assert_eq!(r.header("retry-after"), Some("1"), "{r:?}");
         assert_eq!(r.json()["error"]["code"], "UNAVAILABLE");
     }
+    // Over gRPC (a raw stub, no retries): UNAVAILABLE with ErrorInfo and a RetryInfo hint.
+    let statuses = runtime.block_on(raw_grpc_burst(&server, &images, CLIENTS));
+    let unavailable: Vec<_> = statuses.iter().filter(|s| s.code() == tonic::Code::Unavailable).collect();
+    assert!(!unavailable.is_empty(), "16 gRPC calls against a queue of 1 were all admitted");
+    for status in unavailable {
+        use tonic_types::StatusExt;
+        let details = status.get_error_details();
+        assert_eq!(details.retry_info().and_then(|r| r.retry_delay), Some(std::time::Duration::from_secs(1)));
+        assert_eq!(details.error_info().map(|e| e.reason.as_str()), Some("UNAVAILABLE"));
+    }
     // The gRPC client retries UNAVAILABLE with backoff (1 s hints), so callers that meet a
     // full queue still succeed.
     let answers = runtime.block_on(hammer(&server, &images, 4, 2));
@@ -139,4 +149,27 @@ async fn hammer(
 
 fn e_ok(estimates: &[PoseEstimate]) -> bool {
     estimates.len() == 1 && estimates[0].model_version.starts_with("seed-")
+}
+
+/// `clients` simultaneous unary calls on a raw stub; the failures' statuses.
+async fn raw_grpc_burst(server: &Server, images: &Arc<Vec<Vec<u8>>>, clients: usize) -> Vec<tonic::Status> {
+    use udapose_proto::v1::{EstimateRequest, estimate_request::Input, pose_service_client::PoseServiceClient};
+    let channel = tonic::transport::Endpoint::from_shared(server.grpc_endpoint()).unwrap().connect().await.unwrap();
+    let calls = (0..clients).map(|i| {
+        let mut stub = PoseServiceClient::new(channel.clone());
+        let image = images[i % DISTINCT].clone();
+        tokio::spawn(async move {
+            let request = EstimateRequest {
+                category: "car".into(),
+                input: Some(Input::Image(image.into())),
+                ..Default::default()
+            };
+            stub.estimate(request).await.err()
+        })
+    });
+    let mut out = Vec::new();
+    for call in calls.collect::<Vec<_>>() {
+        out.extend(call.await.unwrap());
+    }
+    out
 }
