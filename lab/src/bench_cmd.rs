@@ -37,10 +37,16 @@ enum Bench {
     /// The inference service under load: throughput and p50/p99 latency at several client
     /// concurrencies, batching on and off, against the backbone-only ceiling.
     Service(bench_service::ServiceArgs),
+    /// The label-free validation gate on SynCar-OOD: source vs. adapted model per domain on the
+    /// held-out adapt images, and whether each decision agrees with the true accuracy change.
+    Gate(gate_cmd::GateArgs),
 }
 
 #[path = "bench_service.rs"]
 mod bench_service;
+
+#[path = "gate_cmd.rs"]
+mod gate_cmd;
 
 #[derive(clap::Args)]
 pub struct SolverArgs {
@@ -79,6 +85,7 @@ pub fn run(args: &Args) -> Result<()> {
     match &args.command {
         Bench::Solver(a) => solver(a),
         Bench::Service(a) => bench_service::run(a),
+        Bench::Gate(a) => gate_cmd::run(a),
     }
 }
 

@@ -1,0 +1,557 @@
+//! `udapose-lab bench gate`: does the label-free validation gate (`udapose_engine::gate`,
+//! ARCHITECTURE.md "Validation gate") say yes where adaptation helped and no where it hurt?
+//!
+//! Per domain, the held-out images are the domain's *adapt* split images whose file bytes'
+//! sha256 falls in `gate::held_out` (the service's rule). The gate measures the source model
+//! (the active one) and the domain's adapted model (the candidate) on them and decides. With the
+//! labels, the command then computes the true Acc@π/6 change on the same held-out images, and
+//! reads the true change on the domain's test split from the report's evaluations
+//! (`<eval>/{source,adapted}/<domain>.json`). A decision agrees when it passes a model whose
+//! accuracy rose and rejects one whose accuracy fell.
+//!
+//! `margin_gain` is chosen here, on the adapt split only: the value of a grid that makes the
+//! decisions (made on the held-out images) agree best with the sign of the accuracy change on
+//! the whole adapt split (ties: the smallest positive value). The test split only reports how
+//! that choice fares. Writes the JSON report and its Markdown twin.
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use rayon::prelude::*;
+use serde_json::{Value, json};
+use sha2::{Digest, Sha256};
+use tch::Tensor;
+use udapose_engine::checkpoint::{self, Model};
+use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::gate::{self, Decision, GateConfig, GateStats, Measured};
+use udapose_engine::runtime::RuntimeInfo;
+use udapose_engine::solver::SolverConfig;
+use udapose_engine::{Camera, Pose, PoseMetrics, pose_error};
+use udapose_lab::atomic::write_atomic;
+use udapose_lab::datasets::syncar::SyncarSplit;
+use udapose_lab::loader::load_sample;
+use udapose_lab::synth::all_domains;
+
+#[derive(clap::Args)]
+pub struct GateArgs {
+    /// The active model (the shipped source model).
+    #[arg(long, default_value = "models/car")]
+    source: PathBuf,
+    /// One adapted model directory per domain, named as the domain with '/' as '-'
+    /// (`adapted/combined`, `adapted/corrupt-fog`, …).
+    #[arg(long, default_value = "data/report-standard/adapted")]
+    adapted: PathBuf,
+    /// SynCar-OOD root (each domain's adapt split gives the held-out images).
+    #[arg(long, default_value = "data/syncar-ood-standard")]
+    data: PathBuf,
+    /// The report's evaluations (`<eval>/{source,adapted}/<domain>.json`) for the test-split
+    /// change (default: `eval` next to `--adapted`); a missing file leaves it n/a.
+    #[arg(long)]
+    eval: Option<PathBuf>,
+    /// Only these domains (default: every adapted model whose domain has an adapt split).
+    #[arg(long, value_delimiter = ',')]
+    domains: Vec<String>,
+    /// Measure on every adapt image, not only the held-out bucket (a larger sample; the
+    /// service decides on the held-out bucket only).
+    #[arg(long)]
+    all_adapt: bool,
+    /// The gate's `margin_gain` for the reported decisions (default: `GateConfig::default()`).
+    #[arg(long)]
+    margin_gain: Option<f64>,
+    /// The grid of `margin_gain` values the adapt-split choice is made from.
+    #[arg(long, value_delimiter = ',', default_values_t = default_gains())]
+    gains: Vec<f64>,
+    /// Report (JSON; a Markdown twin is written next to it).
+    #[arg(long, default_value = "reports/gate.json")]
+    out: PathBuf,
+    /// A remark on the run copied into both reports.
+    #[arg(long)]
+    note: Option<String>,
+    /// Instead of the benchmark: decide between `--source` and `--candidate` on the held-out
+    /// bucket (or, with `--all-adapt`, all) of the images in this folder, without labels, and
+    /// print the decision as JSON (what a service job would decide on these images).
+    #[arg(long, requires = "candidate")]
+    images: Option<PathBuf>,
+    /// The candidate model for `--images`.
+    #[arg(long, requires = "images")]
+    candidate: Option<PathBuf>,
+}
+
+fn default_gains() -> Vec<f64> {
+    [0.0, 0.001].into_iter().chain((1..=20).map(|i| f64::from(i) * 0.0025)).collect()
+}
+
+/// One domain's measurements.
+struct DomainResult {
+    domain: String,
+    /// The gate's images (held out) and their true poses.
+    images: Vec<String>,
+    truth: Vec<Pose>,
+    active: Vec<Measured>,
+    candidate: Vec<Measured>,
+    /// Acc@π/6 of the source and adapted models on the whole adapt split (the gate's images
+    /// included), and its size.
+    adapt_split: (f64, f64, usize),
+    test: Option<TestSplit>,
+}
+
+impl DomainResult {
+    fn stats(m: &[Measured]) -> GateStats {
+        GateStats { images: m.iter().map(|m| m.check.clone()).collect() }
+    }
+
+    fn accuracy(&self, m: &[Measured]) -> Result<f64> {
+        let errors: Vec<f64> =
+            m.iter().zip(&self.truth).map(|(m, t)| pose_error(Some(angles(&m.pose)), angles(t))).collect();
+        Ok(PoseMetrics::from_errors(&errors)?.acc_pi_6)
+    }
+
+    fn decide(&self, config: &GateConfig) -> Result<Decision> {
+        Ok(gate::decide(&Self::stats(&self.active), &Self::stats(&self.candidate), config)?)
+    }
+
+    /// Held-out (adapt split) Acc@π/6 of the source and adapted models.
+    fn adapt_accuracy(&self) -> Result<(f64, f64)> {
+        Ok((self.accuracy(&self.active)?, self.accuracy(&self.candidate)?))
+    }
+}
+
+fn angles(p: &Pose) -> [f64; 3] {
+    [p.azimuth, p.elevation, p.theta]
+}
+
+fn slug(domain: &str) -> String {
+    domain.replace('/', "-")
+}
+
+/// Whether a decision agrees with the sign of an accuracy change: pass when it rose, reject
+/// when it fell; `None` when it did not change.
+fn agrees(passed: bool, change: f64) -> Option<bool> {
+    (change != 0.0).then_some(passed == (change > 0.0))
+}
+
+pub fn run(args: &GateArgs) -> Result<()> {
+    let started = Instant::now();
+    let device = RuntimeInfo::detect().device();
+    let source =
+        checkpoint::load(&args.source, device).with_context(|| format!("loading {}", args.source.display()))?;
+    let mut config = GateConfig::default();
+    if let Some(g) = args.margin_gain {
+        config.margin_gain = g;
+    }
+    config.validate()?;
+    if args.gains.is_empty() || args.gains.iter().any(|g| !g.is_finite()) {
+        bail!("--gains must be finite values");
+    }
+    if let (Some(images), Some(candidate)) = (&args.images, &args.candidate) {
+        return decide_folder(args, &source, candidate, images, &config);
+    }
+    let eval = args.eval.clone().unwrap_or_else(|| args.adapted.parent().unwrap_or(Path::new(".")).join("eval"));
+    let domains: Vec<String> = if args.domains.is_empty() {
+        all_domains()
+            .into_iter()
+            .map(|d| d.name)
+            .filter(|d| args.adapted.join(slug(d)).join(checkpoint::MANIFEST).is_file())
+            .filter(|d| args.data.join(d).join("adapt").is_dir())
+            .collect()
+    } else {
+        args.domains.clone()
+    };
+    if domains.is_empty() {
+        bail!("no adapted model under {} has an adapt split under {}", args.adapted.display(), args.data.display());
+    }
+    let mut results = Vec::with_capacity(domains.len());
+    for domain in &domains {
+        let t = Instant::now();
+        let r = measure_domain(args, &source, domain, &eval, &config)?;
+        let d = r.decide(&config)?;
+        eprintln!("{domain}: {} images, {} ({:.0} s)", r.images.len(), d.reason(), t.elapsed().as_secs_f64());
+        results.push(r);
+    }
+    write_report(args, &config, &results, started.elapsed().as_secs_f64())
+}
+
+/// `--images`: the gate's decision on a folder of unlabelled images, printed as JSON.
+fn decide_folder(args: &GateArgs, source: &Model, candidate: &Path, dir: &Path, config: &GateConfig) -> Result<()> {
+    let adapted =
+        checkpoint::load(candidate, source.vs.device()).with_context(|| format!("loading {}", candidate.display()))?;
+    let [h, w] = source.manifest.crop;
+    let (pixels, names) = udapose_lab::loader::load_image_folder(dir, h, w)?;
+    let mut keep = Vec::new();
+    for (i, name) in names.iter().enumerate() {
+        let bytes = std::fs::read(dir.join(name)).with_context(|| format!("reading {name}"))?;
+        if args.all_adapt || gate::held_out(&Sha256::digest(&bytes)) {
+            keep.push(i as i64);
+        }
+    }
+    let all = Tensor::from_slice(&pixels).reshape([names.len() as i64, 3, h as i64, w as i64]);
+    let images = all.index_select(0, &Tensor::from_slice(&keep));
+    let go = &mut |_: usize, _: usize| ControlFlow::Continue(());
+    let active = gate::measure(source, &images, config, go)?;
+    let cand = gate::measure(&adapted, &images, config, go)?;
+    let decision = gate::decide(&active, &cand, config)?;
+    let kept: Vec<&String> = keep.iter().map(|&i| &names[i as usize]).collect();
+    let out = json!({
+        "images": kept, "config": config, "decision": decision, "reason": decision.reason(),
+        "active": active, "candidate": cand,
+    });
+    println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+fn measure_domain(
+    args: &GateArgs,
+    source: &Model,
+    domain: &str,
+    eval: &Path,
+    config: &GateConfig,
+) -> Result<DomainResult> {
+    let dir = args.adapted.join(slug(domain));
+    let adapted = checkpoint::load(&dir, source.vs.device()).with_context(|| format!("loading {}", dir.display()))?;
+    if adapted.manifest.crop != source.manifest.crop {
+        bail!(
+            "{}: crop {:?} differs from the source's {:?}",
+            dir.display(),
+            adapted.manifest.crop,
+            source.manifest.crop
+        );
+    }
+    let split = SyncarSplit::open(&args.data, domain, "adapt")?;
+    let mut indices = Vec::new();
+    for (i, entry) in split.entries().iter().enumerate() {
+        let bytes =
+            std::fs::read(&entry.image_path).with_context(|| format!("reading {}", entry.image_path.display()))?;
+        if args.all_adapt || gate::held_out(&Sha256::digest(&bytes)) {
+            indices.push(i);
+        }
+    }
+    let [h, w] = source.manifest.crop;
+    let load = |indices: &[usize]| -> Result<(Tensor, Vec<Pose>, Vec<String>)> {
+        let (mut pixels, mut truth, mut names) = (Vec::new(), Vec::new(), Vec::new());
+        for &i in indices {
+            let (p, pose, ih, iw, name) = load_sample(&split, i)?;
+            if (ih, iw) != (h, w) {
+                bail!("{domain}: images are {iw}x{ih}, the model's crop is {w}x{h}");
+            }
+            pixels.extend(p);
+            truth.push(pose);
+            names.push(name);
+        }
+        Ok((Tensor::from_slice(&pixels).reshape([names.len() as i64, 3, h as i64, w as i64]), truth, names))
+    };
+    let (tensor, truth, images) = load(&indices)?;
+    let go = &mut |_: usize, _: usize| ControlFlow::Continue(());
+    let active = gate::measure_poses(source, &tensor, config, go)?;
+    let candidate = gate::measure_poses(&adapted, &tensor, config, go)?;
+    // The rest of the adapt split, for its accuracy change (labels only; the gate never sees it).
+    let rest: Vec<usize> = (0..split.len()).filter(|i| !indices.contains(i)).collect();
+    let (rest_tensor, rest_truth, _) = load(&rest)?;
+    let errors = |model: &Model, measured: &[Measured]| -> Result<Vec<f64>> {
+        let mut poses: Vec<Pose> = measured.iter().map(|m| m.pose).collect();
+        poses.extend(estimate_all(model, &rest_tensor, &config.solver)?);
+        Ok(poses
+            .iter()
+            .zip(truth.iter().chain(&rest_truth))
+            .map(|(p, t)| pose_error(Some(angles(p)), angles(t)))
+            .collect())
+    };
+    let acc = |e: Vec<f64>| -> Result<f64> { Ok(PoseMetrics::from_errors(&e)?.acc_pi_6) };
+    let adapt_split = (acc(errors(source, &active)?)?, acc(errors(&adapted, &candidate)?)?, split.len());
+    let test = test_accuracy(eval, domain);
+    Ok(DomainResult { domain: domain.to_string(), images, truth, active, candidate, adapt_split, test })
+}
+
+/// The estimate of every image (N×3×H×W in [0, 1]): the backbone 16 images a pass, the
+/// solver in parallel over them.
+fn estimate_all(model: &Model, images: &Tensor, config: &SolverConfig) -> Result<Vec<Pose>> {
+    let n = images.size()[0];
+    let [h, w] = model.manifest.crop;
+    let camera = Camera::for_crop(h, w)?;
+    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
+    let mut out = Vec::with_capacity(n as usize);
+    for start in (0..n).step_by(gate::MEASURE_BATCH) {
+        let len = (gate::MEASURE_BATCH as i64).min(n - start);
+        let batch = images.narrow(0, start, len).to_device(model.vs.device());
+        let features = estimator::features(&model.backbone, &batch)?;
+        // Host data only crosses into the worker threads (tch tensors are not Sync).
+        let mesh = &model.neural_mesh.mesh;
+        let poses: Vec<Pose> = features
+            .par_iter()
+            .map(|f| Ok(estimator::estimate(mesh, &solver_mesh, f, &camera, config)?.pose))
+            .collect::<udapose_engine::Result<_>>()?;
+        out.extend(poses);
+    }
+    Ok(out)
+}
+
+/// The test split's Acc@π/6 for both models, from the report's evaluations.
+#[derive(Clone, Copy, Debug)]
+struct TestSplit {
+    source: f64,
+    adapted: f64,
+    /// Images only the source model gets right (< π/6), and only the adapted one.
+    lost: usize,
+    gained: usize,
+}
+
+impl TestSplit {
+    fn change(&self) -> f64 {
+        self.adapted - self.source
+    }
+
+    /// McNemar's statistic of the paired change, `(gained − lost)/√(gained + lost)`: beyond
+    /// ±1.96 the change is unlikely to be noise of the test images.
+    fn z(&self) -> f64 {
+        let n = (self.gained + self.lost) as f64;
+        if n == 0.0 { 0.0 } else { (self.gained as f64 - self.lost as f64) / n.sqrt() }
+    }
+
+    fn significant(&self) -> bool {
+        self.z().abs() >= 1.96
+    }
+}
+
+/// Test-split Acc@π/6 of the source and adapted models from the report's evaluations, paired
+/// by their per-image errors (the same list order).
+fn test_accuracy(eval: &Path, domain: &str) -> Option<TestSplit> {
+    let read = |variant: &str| -> Option<(f64, Vec<f64>)> {
+        let path = eval.join(variant).join(format!("{}.json", slug(domain)));
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()?;
+        let d = &v["domains"][domain];
+        let errors = d["errors_deg"].as_array()?.iter().map(Value::as_f64).collect::<Option<Vec<f64>>>()?;
+        Some((d["acc_pi_6"].as_f64()?, errors))
+    };
+    let ((source, s), (adapted, a)) = (read("source")?, read("adapted")?);
+    if s.len() != a.len() {
+        return None;
+    }
+    let right = |e: f64| e < 30.0;
+    let lost = s.iter().zip(&a).filter(|(s, a)| right(**s) && !right(**a)).count();
+    let gained = s.iter().zip(&a).filter(|(s, a)| !right(**s) && right(**a)).count();
+    Some(TestSplit { source, adapted, lost, gained })
+}
+
+/// One `margin_gain` of the sweep: its agreement with the sign of the adapt split's change and,
+/// for comparison, with the (noisier) held-out images' change, each as (agree, counted).
+struct SweepRow {
+    gain: f64,
+    adapt: (usize, usize),
+    held_out: (usize, usize),
+}
+
+/// The `margin_gain` of `gains` whose decisions agree best with the sign of the adapt split's
+/// accuracy change, ties to the smallest positive value (a candidate must *raise* its margin:
+/// with 0, a no-op adaptation that changed nothing would pass), else the smallest; with each
+/// value's agreement counts.
+fn choose_gain(results: &[DomainResult], base: &GateConfig, gains: &[f64]) -> Result<(f64, Vec<SweepRow>)> {
+    let mut sweep = Vec::with_capacity(gains.len());
+    for &gain in gains {
+        let config = GateConfig { margin_gain: gain, ..base.clone() };
+        let mut row = SweepRow { gain, adapt: (0, 0), held_out: (0, 0) };
+        for r in results {
+            let passed = r.decide(&config)?.passed;
+            let (s, a, _) = r.adapt_split;
+            let (hs, ha) = r.adapt_accuracy()?;
+            for (change, (agree, counted)) in [(a - s, &mut row.adapt), (ha - hs, &mut row.held_out)] {
+                if let Some(ok) = agrees(passed, change) {
+                    *counted += 1;
+                    *agree += usize::from(ok);
+                }
+            }
+        }
+        sweep.push(row);
+    }
+    let best = sweep.iter().map(|s| s.adapt.0).max().unwrap_or(0);
+    let tied: Vec<f64> = sweep.iter().filter(|s| s.adapt.0 == best).map(|s| s.gain).collect();
+    let smallest = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+    let positive: Vec<f64> = tied.iter().copied().filter(|&g| g > 0.0).collect();
+    let chosen = if positive.is_empty() { smallest(&tied) } else { smallest(&positive) };
+    Ok((chosen, sweep))
+}
+
+fn fmt_agree(v: Option<bool>) -> &'static str {
+    match v {
+        Some(true) => "yes",
+        Some(false) => "**no**",
+        None => "n/a (no change)",
+    }
+}
+
+fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], seconds: f64) -> Result<()> {
+    let (chosen, sweep) = choose_gain(results, config, &args.gains)?;
+    let command = ["udapose-lab".to_string()].into_iter().chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
+    let commit = crate::synth_cmd::git_commit();
+    let bucket = if args.all_adapt { "every adapt-split image" } else { "the held-out adapt-split images" };
+    let mut md = format!(
+        "# Validation gate: decisions vs. the true accuracy change\n\n\
+         `{command}` (commit `{commit}`, {}, {:.0} s).\n\n\
+         Active model: `{}` (source). Candidate: each domain's 3DUDA-adapted model under `{}`. The gate measures both on \
+         {bucket} of the domain (sha256 of the file bytes in `gate::held_out`, the service's rule), without labels, \
+         and decides with `margin_gain = {}`, `flip_se = {}`, `entropy_drop = {}`, `entropy_floor = {}`. With the labels, \
+         the change of Acc@π/6 (adapted − source) on the same images (Δ held-out), on the whole adapt split \
+         (Δ adapt split: a larger sample than the held-out bucket) and on the domain's test split from the report's \
+         evaluations (Δ test). A decision *agrees* when it passes a model whose accuracy rose and rejects one whose \
+         accuracy fell. The adapted models were adapted on the whole adapt split, held-out images included (the \
+         service's jobs never train on the held-out bucket).\n\n",
+        crate::eval_cmd::machine(),
+        seconds,
+        args.source.display(),
+        args.adapted.display(),
+        config.margin_gain,
+        config.flip_se,
+        config.entropy_drop,
+        config.entropy_floor,
+    );
+    if let Some(note) = &args.note {
+        md.push_str(&format!("Note: {note}\n\n"));
+    }
+    md.push_str(
+        "| domain | n | flip rate src → adapted (needs) | median margin src → adapted (needs) | azimuth entropy src → adapted (needs) | decision | Δ held-out | Δ adapt split | agrees (adapt) | Δ test (z) | agrees (test) |\n\
+         |---|---:|---|---|---|---|---:|---:|---|---:|---|\n",
+    );
+    let mut domains = serde_json::Map::new();
+    let (mut agree_test, mut counted_test, mut agree_adapt, mut counted_adapt, mut passed) = (0, 0, 0, 0, 0);
+    let (mut agree_significant, mut counted_significant) = (0, 0);
+    for r in results {
+        let d = r.decide(config)?;
+        let (s, a) = r.adapt_accuracy()?;
+        let held_change = a - s;
+        let (split_s, split_a, split_n) = r.adapt_split;
+        let adapt_change = split_a - split_s;
+        let test_change = r.test.map(|t| t.change());
+        let ok_adapt = agrees(d.passed, adapt_change);
+        let ok_test = test_change.and_then(|c| agrees(d.passed, c));
+        if let (Some(t), Some(ok)) = (r.test, ok_test)
+            && t.significant()
+        {
+            counted_significant += 1;
+            agree_significant += usize::from(ok);
+        }
+        for (ok, agree, counted) in
+            [(ok_adapt, &mut agree_adapt, &mut counted_adapt), (ok_test, &mut agree_test, &mut counted_test)]
+        {
+            if let Some(ok) = ok {
+                *counted += 1;
+                *agree += usize::from(ok);
+            }
+        }
+        passed += usize::from(d.passed);
+        let cell = |name: &str, digits: usize| {
+            let c = d.criteria.iter().find(|c| c.name == name).expect("criterion");
+            format!(
+                "{:.digits$} → {:.digits$} (≥ {:.digits$}){}",
+                c.active,
+                c.candidate,
+                c.threshold,
+                if c.passed { "" } else { " ✗" }
+            )
+        };
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {:+.3} | {:+.3} | {} | {} | {} |\n",
+            r.domain,
+            r.images.len(),
+            cell("flip_consistency", 3),
+            cell("score_margin", 4),
+            cell("pose_diversity", 3),
+            if d.passed { "PASS" } else { "REJECT" },
+            held_change,
+            adapt_change,
+            fmt_agree(ok_adapt),
+            r.test.map_or("n/a".into(), |t| format!("{:+.3} ({:+.1})", t.change(), t.z())),
+            if test_change.is_some() { fmt_agree(ok_test) } else { "n/a" },
+        ));
+        let per_image: Vec<Value> = r
+            .images
+            .iter()
+            .zip(&r.truth)
+            .zip(r.active.iter().zip(&r.candidate))
+            .map(|((name, t), (s, c))| {
+                json!({
+                    "image": name,
+                    "truth": angles(t),
+                    "source": {"pose": angles(&s.pose), "check": s.check,
+                               "error_deg": pose_error(Some(angles(&s.pose)), angles(t)).to_degrees()},
+                    "adapted": {"pose": angles(&c.pose), "check": c.check,
+                                "error_deg": pose_error(Some(angles(&c.pose)), angles(t)).to_degrees()},
+                })
+            })
+            .collect();
+        domains.insert(
+            r.domain.clone(),
+            json!({
+                "images": r.images.len(),
+                "decision": d,
+                "reason": d.reason(),
+                "held_out_acc_pi_6": {"source": s, "adapted": a, "change": held_change},
+                "adapt_split_acc_pi_6": {"source": split_s, "adapted": split_a, "change": adapt_change, "images": split_n, "agrees": ok_adapt},
+                "test_acc_pi_6": r.test.map(|t| json!({
+                    "source": t.source, "adapted": t.adapted, "change": t.change(), "agrees": ok_test,
+                    "lost": t.lost, "gained": t.gained, "mcnemar_z": t.z(), "significant": t.significant(),
+                })),
+                "per_image": per_image,
+            }),
+        );
+    }
+    md.push_str(&format!(
+        "\n**Totals**: {passed} of {} candidates pass. Decisions agree with the sign of the test-split change in \
+         **{agree_test} of {counted_test}** domains; in **{agree_significant} of {counted_significant}** of those whose \
+         test change is beyond noise (McNemar |z| ≥ 1.96: z = (gained − lost)/√(gained + lost), images only one model \
+         gets within π/6); and with the sign of the adapt-split change in {agree_adapt} of {counted_adapt} (domains \
+         whose accuracy did not change are not counted).\n\n",
+        results.len()
+    ));
+    let lo = results.iter().map(|r| r.images.len()).min().unwrap_or(0);
+    let hi = results.iter().map(|r| r.images.len()).max().unwrap_or(0);
+    md.push_str(&format!(
+        "## Choosing `margin_gain` (adapt split only)\n\n\
+         For each value, how many domains' decisions agree with the sign of the adapt-split Δ (of those that \
+         changed). The best is {chosen} (ties to the smallest positive value: with 0, a no-op adaptation that \
+         changed nothing would pass); the decisions above use {}. For comparison, the \
+         agreement with the sign of Δ on the gate's images alone ({lo}–{hi} images per domain, where a change of \
+         one or two images decides the sign); it was not used to choose.\n\n\
+         | margin_gain | agree (adapt split) | agree (held-out only) |\n|---:|---:|---:|\n",
+        config.margin_gain
+    ));
+    for r in &sweep {
+        md.push_str(&format!(
+            "| {:.4} | {} / {} | {} / {} |\n",
+            r.gain, r.adapt.0, r.adapt.1, r.held_out.0, r.held_out.1
+        ));
+    }
+    let report = json!({
+        "command": command,
+        "commit": commit,
+        "machine": crate::eval_cmd::machine(),
+        "seconds": seconds,
+        "note": args.note,
+        "source": args.source.display().to_string(),
+        "adapted": args.adapted.display().to_string(),
+        "data": args.data.display().to_string(),
+        "images": if args.all_adapt { "adapt" } else { "held-out adapt" },
+        "config": config,
+        "totals": {
+            "domains": results.len(),
+            "passed": passed,
+            "agree_test": agree_test, "counted_test": counted_test,
+            "agree_adapt": agree_adapt, "counted_adapt": counted_adapt,
+            "agree_test_significant": agree_significant, "counted_test_significant": counted_significant,
+        },
+        "margin_gain_sweep": sweep.iter().map(|r| json!({
+            "margin_gain": r.gain,
+            "agree_adapt_split": r.adapt.0, "counted_adapt_split": r.adapt.1,
+            "agree_held_out": r.held_out.0, "counted_held_out": r.held_out.1,
+        })).collect::<Vec<_>>(),
+        "margin_gain_chosen": chosen,
+        "domains": domains,
+    });
+    write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
+    write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
+    eprintln!(
+        "{passed}/{} pass; agree with test Δ in {agree_test}/{counted_test} ({agree_significant}/{counted_significant} \
+         significant), adapt Δ in {agree_adapt}/{counted_adapt}; margin_gain chosen on adapt: {chosen}",
+        results.len()
+    );
+    Ok(())
+}
