@@ -95,6 +95,8 @@ struct DomainResult {
     /// included), and its size.
     adapt_split: (f64, f64, usize),
     test: Option<TestSplit>,
+    /// How many images the candidate was adapted on (its manifest's `training.run.n_images`).
+    trained_on: Option<u64>,
 }
 
 impl DomainResult {
@@ -260,7 +262,8 @@ fn measure_domain(
     let acc = |e: Vec<f64>| -> Result<f64> { Ok(PoseMetrics::from_errors(&e)?.acc_pi_6) };
     let adapt_split = (acc(errors(source, &active)?)?, acc(errors(&adapted, &candidate)?)?, split.len());
     let test = test_accuracy(eval, domain);
-    Ok(DomainResult { domain: domain.to_string(), images, truth, active, candidate, adapt_split, test })
+    let trained_on = adapted.manifest.training["run"]["n_images"].as_u64();
+    Ok(DomainResult { domain: domain.to_string(), images, truth, active, candidate, adapt_split, test, trained_on })
 }
 
 /// The estimate of every image (N×3×H×W in [0, 1]): the backbone 16 images a pass, the
@@ -379,6 +382,26 @@ fn fmt_agree(v: Option<bool>) -> &'static str {
     }
 }
 
+/// Whether the candidates were adapted on the held-out images too (by their manifests' image
+/// counts), as a sentence for the report.
+fn trained_on(results: &[DomainResult]) -> String {
+    let whole = results.iter().all(|r| r.trained_on == Some(r.adapt_split.2 as u64));
+    let without = results.iter().all(|r| r.trained_on == Some((r.adapt_split.2 - r.images.len()) as u64));
+    if whole && !without {
+        "The candidates were adapted on the whole adapt split, held-out images included (a service job never \
+         trains on the held-out bucket)."
+            .into()
+    } else if without && !whole {
+        "The candidates were adapted on the adapt split without the held-out bucket, as a service job is.".into()
+    } else {
+        let counts: Vec<String> = results
+            .iter()
+            .map(|r| format!("{} {}", r.domain, r.trained_on.map_or("?".into(), |n| n.to_string())))
+            .collect();
+        format!("Images each candidate was adapted on (its manifest): {}.", counts.join(", "))
+    }
+}
+
 fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], seconds: f64) -> Result<()> {
     let (chosen, sweep) = choose_gain(results, config, &args.gains)?;
     let command = ["udapose-lab".to_string()].into_iter().chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
@@ -393,8 +416,8 @@ fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], 
          the change of Acc@π/6 (adapted − source) on the same images (Δ held-out), on the whole adapt split \
          (Δ adapt split: a larger sample than the held-out bucket) and on the domain's test split from the report's \
          evaluations (Δ test). A decision *agrees* when it passes a model whose accuracy rose and rejects one whose \
-         accuracy fell. The adapted models were adapted on the whole adapt split, held-out images included (the \
-         service's jobs never train on the held-out bucket).\n\n",
+         accuracy fell. {}\n\n",
+        trained_on(results),
         crate::eval_cmd::machine(),
         seconds,
         args.source.display(),
@@ -462,26 +485,26 @@ fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], 
             r.test.map_or("n/a".into(), |t| format!("{:+.3} ({:+.1})", t.change(), t.z())),
             if test_change.is_some() { fmt_agree(ok_test) } else { "n/a" },
         ));
-        let per_image: Vec<Value> = r
-            .images
-            .iter()
-            .zip(&r.truth)
-            .zip(r.active.iter().zip(&r.candidate))
-            .map(|((name, t), (s, c))| {
-                json!({
-                    "image": name,
-                    "truth": angles(t),
-                    "source": {"pose": angles(&s.pose), "check": s.check,
-                               "error_deg": pose_error(Some(angles(&s.pose)), angles(t)).to_degrees()},
-                    "adapted": {"pose": angles(&c.pose), "check": c.check,
-                                "error_deg": pose_error(Some(angles(&c.pose)), angles(t)).to_degrees()},
-                })
+        // Per image, in `images` order (columns keep the report small): each model's checks and
+        // its error against the label, enough to re-decide or re-score offline.
+        let round = |v: f64, digits: i32| (v * 10f64.powi(digits)).round() / 10f64.powi(digits);
+        let columns = |m: &[Measured]| {
+            json!({
+                "azimuth_deg": m.iter().map(|m| round(m.check.azimuth.to_degrees(), 4)).collect::<Vec<_>>(),
+                "score": m.iter().map(|m| round(m.check.score, 7)).collect::<Vec<_>>(),
+                "margin": m.iter().map(|m| round(m.check.margin, 7)).collect::<Vec<_>>(),
+                "flip_consistent": m.iter().map(|m| m.check.flip_consistent).collect::<Vec<_>>(),
+                "error_deg": m.iter().zip(&r.truth)
+                    .map(|(m, t)| round(pose_error(Some(angles(&m.pose)), angles(t)).to_degrees(), 4))
+                    .collect::<Vec<_>>(),
             })
-            .collect();
+        };
+        let per_image = json!({"image": r.images, "source": columns(&r.active), "adapted": columns(&r.candidate)});
         domains.insert(
             r.domain.clone(),
             json!({
                 "images": r.images.len(),
+                "candidate_trained_on": r.trained_on,
                 "decision": d,
                 "reason": d.reason(),
                 "held_out_acc_pi_6": {"source": s, "adapted": a, "change": held_change},
