@@ -161,7 +161,7 @@ async fn raw_grpc_burst(server: &Server, images: &Arc<Vec<Vec<u8>>>, clients: us
         tokio::spawn(async move {
             let request = EstimateRequest {
                 category: "car".into(),
-                input: Some(Input::Image(image.into())),
+                input: Some(Input::Image(image)),
                 ..Default::default()
             };
             stub.estimate(request).await.err()
