@@ -120,24 +120,30 @@ impl Store {
 
     /// The active generation and its log entry; `None` when nothing was ever activated.
     pub fn head(&self, category: &str) -> Result<Option<(u64, Activation)>> {
+        let Some(&generation) = self.generations(category)?.last() else { return Ok(None) };
+        Ok(Some((generation, self.activation(category, generation)?)))
+    }
+
+    /// The generations in the log, ascending (file names, not contents).
+    fn generations(&self, category: &str) -> Result<Vec<u64>> {
         let dir = self.activations_dir(category);
         if !dir.is_dir() {
-            return Ok(None);
+            return Ok(Vec::new());
         }
-        let mut highest: Option<u64> = None;
+        let mut out = Vec::new();
         for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
             let name = entry.map_err(io_err(&dir))?.file_name();
-            let generation = name.to_str().and_then(|n| n.strip_suffix(".json")).and_then(|n| n.parse::<u64>().ok());
-            if let Some(g) = generation {
-                highest = highest.max(Some(g));
-            }
+            out.extend(name.to_str().and_then(|n| n.strip_suffix(".json")).and_then(|n| n.parse::<u64>().ok()));
         }
-        let Some(generation) = highest else { return Ok(None) };
-        let path = dir.join(activation_name(generation));
+        out.sort_unstable();
+        Ok(out)
+    }
+
+    fn activation(&self, category: &str, generation: u64) -> Result<Activation> {
+        let path = self.activations_dir(category).join(activation_name(generation));
         let text = fs::read_to_string(&path).map_err(io_err(&path))?;
-        let activation = serde_json::from_str(&text)
-            .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })?;
-        Ok(Some((generation, activation)))
+        serde_json::from_str(&text)
+            .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })
     }
 
     /// The manifest of a complete version (its manifest is written last; a directory without
@@ -206,25 +212,8 @@ impl Store {
 
     /// The activation log, newest first.
     pub fn activations(&self, category: &str) -> Result<Vec<(u64, Activation)>> {
-        let dir = self.activations_dir(category);
-        if !dir.is_dir() {
-            return Ok(Vec::new());
-        }
-        let mut out = Vec::new();
-        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let name = entry.map_err(io_err(&dir))?.file_name();
-            let Some(generation) = name.to_str().and_then(|n| n.strip_suffix(".json")).and_then(|n| n.parse().ok())
-            else {
-                continue;
-            };
-            let path = dir.join(activation_name(generation));
-            let text = fs::read_to_string(&path).map_err(io_err(&path))?;
-            let activation = serde_json::from_str(&text)
-                .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })?;
-            out.push((generation, activation));
-        }
-        out.sort_by_key(|a| std::cmp::Reverse(a.0));
-        Ok(out)
+        let generations = self.generations(category)?;
+        generations.into_iter().rev().map(|g| Ok((g, self.activation(category, g)?))).collect()
     }
 
     /// The complete versions of a category (manifest present), sorted by id.
