@@ -159,11 +159,8 @@ async fn raw_grpc_burst(server: &Server, images: &Arc<Vec<Vec<u8>>>, clients: us
         let mut stub = PoseServiceClient::new(channel.clone());
         let image = images[i % DISTINCT].clone();
         tokio::spawn(async move {
-            let request = EstimateRequest {
-                category: "car".into(),
-                input: Some(Input::Image(image)),
-                ..Default::default()
-            };
+            let request =
+                EstimateRequest { category: "car".into(), input: Some(Input::Image(image)), ..Default::default() };
             stub.estimate(request).await.err()
         })
     });
