@@ -407,6 +407,7 @@ fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], 
     let command = ["udapose-lab".to_string()].into_iter().chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
     let commit = crate::synth_cmd::git_commit();
     let bucket = if args.all_adapt { "every adapt-split image" } else { "the held-out adapt-split images" };
+    let trained = trained_on(results);
     let mut md = format!(
         "# Validation gate: decisions vs. the true accuracy change\n\n\
          `{command}` (commit `{commit}`, {}, {:.0} s).\n\n\
@@ -416,8 +417,7 @@ fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], 
          the change of Acc@π/6 (adapted − source) on the same images (Δ held-out), on the whole adapt split \
          (Δ adapt split: a larger sample than the held-out bucket) and on the domain's test split from the report's \
          evaluations (Δ test). A decision *agrees* when it passes a model whose accuracy rose and rejects one whose \
-         accuracy fell. {}\n\n",
-        trained_on(results),
+         accuracy fell. {trained}\n\n",
         crate::eval_cmd::machine(),
         seconds,
         args.source.display(),
