@@ -5,7 +5,8 @@
 //! ```sh
 //! cargo run --release -p udapose-client --example robot_loop -- 127.0.0.1:50051 car path/to/frames 10
 //! ```
-//! Arguments: endpoint, category, folder of PNG/JPEG/WebP frames, frames per second.
+//! Arguments: endpoint (or several, comma-separated: the stream moves to another when its server
+//! goes away), category, folder of PNG/JPEG/WebP frames, frames per second.
 
 use std::time::{Duration, Instant};
 

@@ -15,10 +15,10 @@ use tokio_stream::{Stream, StreamExt, wrappers::ReceiverStream};
 use tonic::{Status, Streaming};
 use udapose_proto::v1::{
     AdaptOverrides, CancelJobRequest, GetJobRequest, Job, JobEvent, JobState, ListJobsRequest, StartJobRequest,
-    TargetAck, TargetImage, WatchJobRequest, target_ack,
+    TargetAck, TargetImage, WatchJobRequest, adaptation_service_client::AdaptationServiceClient, target_ack,
 };
 
-use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, delay, retryable};
+use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, Tries};
 
 /// Images sent on a `StreamTargets` stream and not yet acknowledged, at most: the server acks
 /// each once it is durable, so a few in flight hide the round trip and the fsync.
@@ -152,15 +152,15 @@ impl Client {
         overrides: AdaptOverrides,
         client_job_id: Option<&str>,
     ) -> Result<Job, Error> {
-        let message = StartJobRequest {
+        let message = &StartJobRequest {
             category: category.into(),
             overrides: Some(overrides),
             client_job_id: client_job_id.unwrap_or_default().into(),
         };
-        let call = || async { self.adapt.clone().start_job(self.request(message.clone())).await };
+        let call = |ch| async move { AdaptationServiceClient::new(ch).start_job(self.request(message.clone())).await };
         let response = match client_job_id {
             Some(id) if !id.is_empty() => self.retrying(call).await?,
-            _ => call().await?,
+            _ => self.once(call).await?,
         };
         Ok(response.into_inner())
     }
@@ -168,9 +168,12 @@ impl Client {
     /// The job's events after `after_seq` (0: all), then new ones as they happen, until the
     /// terminal one. The first call's error (e.g. NOT_FOUND) is returned here; later, when the
     /// stream breaks (or ends before the terminal event) it is reopened from the last `seq`
-    /// seen, at most `retries` times in a row without an event.
+    /// seen (on the next endpoint up), at most `retries` pauses in a row without an event.
     pub async fn watch_job(&self, job_id: &str, after_seq: u64) -> Result<JobEvents, Error> {
-        let stream = self.open_watch(job_id, after_seq).await?;
+        let message = &WatchJobRequest { job_id: job_id.into(), after_seq };
+        let call = |ch| async move { AdaptationServiceClient::new(ch).watch_job(self.request(message.clone())).await };
+        let (endpoint, response) = self.retrying_on(call).await?;
+        let stream = (endpoint, response.into_inner());
         let (out, rx) = mpsc::channel(16);
         let (client, job_id) = (self.clone(), job_id.to_owned());
         tokio::spawn(async move {
@@ -181,26 +184,23 @@ impl Client {
         Ok(JobEvents(ReceiverStream::new(rx)))
     }
 
-    async fn open_watch(&self, job_id: &str, after_seq: u64) -> Result<Streaming<JobEvent>, Error> {
-        let message = WatchJobRequest { job_id: job_id.into(), after_seq };
-        let response =
-            self.retrying(|| async { self.adapt.clone().watch_job(self.request(message.clone())).await }).await?;
-        Ok(response.into_inner())
-    }
-
     /// One job, with its last event.
     pub async fn get_job(&self, job_id: &str) -> Result<Job, Error> {
-        let message = GetJobRequest { job_id: job_id.into() };
-        let response =
-            self.retrying(|| async { self.adapt.clone().get_job(self.request(message.clone())).await }).await?;
+        let message = &GetJobRequest { job_id: job_id.into() };
+        let response = self
+            .retrying(|ch| async move { AdaptationServiceClient::new(ch).get_job(self.request(message.clone())).await })
+            .await?;
         Ok(response.into_inner())
     }
 
     /// Jobs, newest first; only `category`'s when given.
     pub async fn list_jobs(&self, category: Option<&str>) -> Result<Vec<Job>, Error> {
-        let message = ListJobsRequest { category: category.unwrap_or_default().into() };
-        let response =
-            self.retrying(|| async { self.adapt.clone().list_jobs(self.request(message.clone())).await }).await?;
+        let message = &ListJobsRequest { category: category.unwrap_or_default().into() };
+        let response = self
+            .retrying(
+                |ch| async move { AdaptationServiceClient::new(ch).list_jobs(self.request(message.clone())).await },
+            )
+            .await?;
         Ok(response.into_inner().jobs)
     }
 
@@ -208,13 +208,9 @@ impl Client {
     /// once (not in the contract's list of retried calls).
     pub async fn cancel_job(&self, job_id: &str, reason: &str) -> Result<Job, Error> {
         let message = CancelJobRequest { job_id: job_id.into(), reason: reason.into() };
-        Ok(self.adapt.clone().cancel_job(self.request(message)).await?.into_inner())
+        let call = |ch| async move { AdaptationServiceClient::new(ch).cancel_job(self.request(message)).await };
+        Ok(self.once(call).await?.into_inner())
     }
-}
-
-/// Whether a stream that failed with `status` is worth reopening.
-fn reconnectable(status: &Status) -> bool {
-    retryable(status)
 }
 
 /// Drives the uploads of [`Client::stream_targets`]; `Ok` once every image has its upload (or
@@ -227,7 +223,7 @@ async fn upload(
 ) -> Result<(), Error> {
     let mut ledger = Ledger::new(client.buffer_full_retries, client.buffer_full_backoff);
     let mut input_done = false;
-    let mut failures = 0;
+    let mut tries = Tries::default();
     loop {
         // A stream is opened with images already queued on it (so a server that reads the
         // first image before it answers works as well as one that answers at once).
@@ -248,7 +244,7 @@ async fn upload(
             }
         }
         let (tx, rx) = mpsc::channel::<TargetImage>(WINDOW);
-        let opened = async {
+        let (endpoint, opened) = async {
             if let Some(pause) = ledger.pause() {
                 tokio::time::sleep(pause).await;
                 ledger.release_waiting();
@@ -257,12 +253,15 @@ async fn upload(
                 let Some(image) = ledger.send_next(category) else { break };
                 let _ = tx.send(image).await; // never blocks: the channel holds a window
             }
-            client.adapt.clone().stream_targets(client.request(ReceiverStream::new(rx))).await
+            let (endpoint, channel) = client.pool.pick();
+            let targets = client.request(ReceiverStream::new(rx));
+            (endpoint, AdaptationServiceClient::new(channel).stream_targets(targets).await)
         }
         .await;
         let broken = match opened {
             Err(status) => status,
             Ok(response) => {
+                client.pool.answered(endpoint);
                 let mut acks = response.into_inner();
                 loop {
                     if let Some(pause) = ledger.pause() {
@@ -293,7 +292,7 @@ async fn upload(
                         () = out.closed() => return Ok(()),
                         ack = acks.message(), if ledger.has_in_flight() => match ack {
                             Ok(Some(ack)) => {
-                                failures = 0;
+                                tries = Tries::default();
                                 ledger.acked(ack)?;
                                 for done in ledger.take_ready() {
                                     if out.send(Ok(done)).await.is_err() {
@@ -314,12 +313,8 @@ async fn upload(
                 }
             }
         };
-        if !reconnectable(&broken) || failures >= client.retries {
-            return Err(broken.into());
-        }
         ledger.broken();
-        tokio::time::sleep(delay(&broken, failures)).await;
-        failures += 1;
+        client.again(&mut tries, endpoint, broken).await?;
     }
 }
 
@@ -328,11 +323,11 @@ async fn follow(
     client: &Client,
     job_id: &str,
     after_seq: u64,
-    mut stream: Streaming<JobEvent>,
+    (mut endpoint, mut stream): (usize, Streaming<JobEvent>),
     out: &mpsc::Sender<Result<JobEvent, Error>>,
 ) -> Result<(), Error> {
     let mut last = after_seq;
-    let mut failures = 0;
+    let mut tries = Tries::default();
     loop {
         let broken = loop {
             let message = tokio::select! {
@@ -342,7 +337,7 @@ async fn follow(
             };
             match message {
                 Ok(Some(event)) => {
-                    failures = 0;
+                    tries = Tries::default();
                     if event.seq <= last {
                         continue; // already seen (a server replaying from an older seq)
                     }
@@ -358,16 +353,16 @@ async fn follow(
                 Err(status) => break status,
             }
         };
+        // Reopened after the last event seen, on the next endpoint up.
         let mut status = broken;
         loop {
-            if !reconnectable(&status) || failures >= client.retries {
-                return Err(status.into());
-            }
-            tokio::time::sleep(delay(&status, failures)).await;
-            failures += 1;
+            client.again(&mut tries, endpoint, status).await?;
+            let channel;
+            (endpoint, channel) = client.pool.pick();
             let message = WatchJobRequest { job_id: job_id.into(), after_seq: last };
-            match client.adapt.clone().watch_job(client.request(message)).await {
+            match AdaptationServiceClient::new(channel).watch_job(client.request(message)).await {
                 Ok(response) => {
+                    client.pool.answered(endpoint);
                     stream = response.into_inner();
                     break;
                 }

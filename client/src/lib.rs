@@ -4,8 +4,21 @@
 //!
 //! Only idempotent calls are retried (ARCHITECTURE.md "Service contract"): estimates, reads,
 //! uploads (an image's id is its sha256), `StartJob` with a `client_job_id`, and
-//! `Activate`/`Rollback` with an `expected_generation`. Streams (`StreamTargets`, `WatchJob`)
-//! reconnect and resume where they broke off.
+//! `Activate`/`Rollback` with an `expected_generation`. Streams (`StreamTargets`, `WatchJob`,
+//! `EstimateStream`) reconnect and resume where they broke off.
+//!
+//! # Several endpoints
+//!
+//! [`ClientOptions::endpoints`] may name several replicas (`Client::connect("a:50051,b:50051")`
+//! too). The client keeps one connection per endpoint and sends each call to the next endpoint in
+//! turn that is up. An endpoint that fails a call (refused or broken connection, or UNAVAILABLE:
+//! overloaded, not ready) is passed over for 1 s, doubled per failure in a row up to 10 s; after
+//! that it is tried again, and it is back with its first answer. An idempotent call that failed
+//! so is sent again at once to another endpoint that is up (each endpoint once); when every
+//! endpoint has failed it, it waits (the server's RetryInfo hint, else backoff from 100 ms) and
+//! tries again, at most [`ClientOptions::retries`] times, then fails with [`Error::GaveUp`].
+//! Other calls are sent once, to an endpoint that is up. A broken stream is reopened on the next
+//! endpoint up, with the same budget counted from its last progress.
 //!
 //! ```no_run
 //! # async fn run() -> Result<(), udapose_client::Error> {
@@ -19,20 +32,22 @@
 //! ```
 
 mod adapt;
+mod pool;
+mod video;
 
-use std::time::Duration;
+use std::{sync::Arc, time::Duration};
 
-use tokio_stream::Stream;
+use pool::Pool;
 use tonic::{
-    Code, Request, Status, Streaming,
+    Code, Request, Status,
     metadata::MetadataValue,
     transport::{Certificate, Channel, ClientTlsConfig, Endpoint},
 };
 use tonic_types::StatusExt;
 use udapose_proto::v1::{
     ActivateRequest, DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, ListVersionsRequest,
-    RollbackRequest, adaptation_service_client::AdaptationServiceClient, estimate_request::Input,
-    model_service_client::ModelServiceClient, pose_service_client::PoseServiceClient,
+    RollbackRequest, estimate_request::Input, model_service_client::ModelServiceClient,
+    pose_service_client::PoseServiceClient,
 };
 
 pub use adapt::{JobEvents, Upload, Uploads, buffer_full, is_terminal, new_client_job_id, state_name};
@@ -40,6 +55,7 @@ pub use udapose_proto::v1::{
     ActivationEntry, AdaptOverrides, BoundingBox, GateCriterion, Job, JobEvent, JobState, ListVersionsResponse,
     ModelDescription, ModelInfo, PoseEstimate, RawImage, TargetAck, VersionInfo, target_ack,
 };
+pub use video::Estimates;
 
 /// How long to wait for a TCP connection before giving up on an endpoint.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(1);
@@ -53,12 +69,16 @@ const MAX_BUFFER_FULL_BACKOFF: Duration = Duration::from_secs(30);
 /// What can go wrong talking to a server.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
+    #[error("no endpoint given")]
+    NoEndpoint,
     #[error("invalid endpoint {endpoint:?}")]
     InvalidEndpoint {
         endpoint: String,
         #[source]
         source: tonic::transport::Error,
     },
+    /// None of the endpoints (listed, comma-separated) could be reached; `source` is the first's
+    /// error.
     #[error("cannot connect to {endpoint}")]
     Connect {
         endpoint: String,
@@ -70,6 +90,10 @@ pub enum Error {
     /// The server's answer (not a `#[source]`: its message is already in this one).
     #[error("{:?}: {}", .0.code(), .0.message())]
     Rpc(tonic::Status),
+    /// An idempotent call (or a stream's reconnection) failed on every try: every endpoint was
+    /// unreachable or UNAVAILABLE. `status` is the last try's.
+    #[error("{:?}: {}{} (gave up after {tries} tries on {endpoints})", .status.code(), .status.message(), cause(.status))]
+    GaveUp { status: tonic::Status, tries: u32, endpoints: String },
     /// The server broke the protocol (e.g. an ack for an image that was not sent).
     #[error("protocol error: {0}")]
     Protocol(String),
@@ -82,10 +106,10 @@ impl From<tonic::Status> for Error {
 }
 
 impl Error {
-    /// The gRPC code, when the server answered.
+    /// The gRPC code, when the server answered (or the connection's failure made one).
     pub fn code(&self) -> Option<Code> {
         match self {
-            Error::Rpc(s) => Some(s.code()),
+            Error::Rpc(s) | Error::GaveUp { status: s, .. } => Some(s.code()),
             _ => None,
         }
     }
@@ -94,7 +118,8 @@ impl Error {
 /// How to reach the server(s).
 #[derive(Debug, Clone)]
 pub struct ClientOptions {
-    /// One or more `host:port` or URIs; calls are spread over the reachable ones.
+    /// One or more `host:port` or URIs (an entry may hold several, comma-separated); calls are
+    /// spread over those that are up (see the crate's documentation).
     pub endpoints: Vec<String>,
     /// Bearer token sent with every call.
     pub token: Option<String>,
@@ -103,10 +128,12 @@ pub struct ClientOptions {
     pub ca_cert: Option<Vec<u8>>,
     /// The name to verify the server's certificate against (default: the endpoint's host).
     pub tls_domain: Option<String>,
-    /// Retries of an idempotent call that met UNAVAILABLE (or a transport error); for a stream,
-    /// reconnections in a row without progress.
+    /// How often an idempotent call is tried again, after a pause, once every endpoint has failed
+    /// it (unreachable, or UNAVAILABLE); moving to another endpoint that is up is immediate and
+    /// not counted. For a stream, such pauses in a row without progress.
     pub retries: u32,
-    /// Connect eagerly (fail fast) rather than on the first call.
+    /// Connect to the endpoints at once and fail unless one can be reached, rather than on the
+    /// first call.
     pub eager: bool,
     /// How often an image rejected with BUFFER_FULL is resent (after a pause) before its
     /// REJECTED ack is final.
@@ -131,52 +158,45 @@ impl ClientOptions {
     }
 }
 
-/// A connection to one udapose server, or a balanced set of replicas.
+/// A connection to one udapose server, or to several replicas with failover. Cheap to clone
+/// (clones share the connections and what is known of the endpoints' health).
 #[derive(Debug, Clone)]
 pub struct Client {
-    models: ModelServiceClient<Channel>,
-    poses: PoseServiceClient<Channel>,
-    adapt: AdaptationServiceClient<Channel>,
+    pool: Arc<Pool>,
     token: Option<MetadataValue<tonic::metadata::Ascii>>,
     retries: u32,
     buffer_full_retries: u32,
     buffer_full_backoff: Duration,
 }
 
+/// The failed tries of one call, or of a stream since its last progress.
+#[derive(Debug, Default)]
+struct Tries {
+    total: u32,
+    /// Since the last pause: each endpoint is tried once before pausing.
+    since_pause: usize,
+    pauses: u32,
+}
+
 impl Client {
-    /// Connects to `endpoint`: a URI (`http://host:port`) or a bare `host:port`.
+    /// Connects to `endpoint`: a URI (`http://host:port`) or a bare `host:port`, or several,
+    /// comma-separated.
     pub async fn connect(endpoint: &str) -> Result<Self, Error> {
         Self::connect_with(ClientOptions::new(endpoint)).await
     }
 
     pub async fn connect_with(options: ClientOptions) -> Result<Self, Error> {
-        let tls = options.ca_cert.is_some() || options.endpoints.iter().any(|e| e.starts_with("https://"));
-        let mut endpoints = Vec::new();
-        for e in &options.endpoints {
-            let uri = with_scheme(e, tls);
-            let invalid = |source| Error::InvalidEndpoint { endpoint: e.clone(), source };
-            let mut endpoint = Endpoint::from_shared(uri).map_err(invalid)?.connect_timeout(CONNECT_TIMEOUT);
-            if tls {
-                let mut config = ClientTlsConfig::new();
-                config = match &options.ca_cert {
-                    Some(pem) => config.ca_certificate(Certificate::from_pem(pem)),
-                    None => config.with_native_roots(),
-                };
-                if let Some(domain) = &options.tls_domain {
-                    config = config.domain_name(domain.clone());
-                }
-                endpoint = endpoint.tls_config(config).map_err(invalid)?;
-            }
-            endpoints.push((e.clone(), endpoint));
+        let names: Vec<&str> =
+            options.endpoints.iter().flat_map(|e| e.split(',')).map(str::trim).filter(|e| !e.is_empty()).collect();
+        if names.is_empty() {
+            return Err(Error::NoEndpoint);
         }
-        let channel = match endpoints.as_slice() {
-            [] => return Err(Error::InvalidToken("no endpoint given".into())),
-            [(name, one)] if options.eager => {
-                one.connect().await.map_err(|source| Error::Connect { endpoint: name.clone(), source })?
-            }
-            [(_, one)] => one.connect_lazy(),
-            many => Channel::balance_list(many.iter().map(|(_, e)| e.clone())),
-        };
+        let tls = options.ca_cert.is_some() || names.iter().any(|e| e.starts_with("https://"));
+        let endpoints = names
+            .iter()
+            .map(|name| Ok((name.to_string(), endpoint(name, tls, &options)?)))
+            .collect::<Result<_, Error>>()?;
+        let pool = if options.eager { Pool::connect(endpoints).await? } else { Pool::lazy(endpoints) };
         let token = match options.token.filter(|t| !t.is_empty()) {
             Some(t) => {
                 Some(format!("Bearer {t}").parse().map_err(|_| Error::InvalidToken("not printable ASCII".into()))?)
@@ -184,9 +204,7 @@ impl Client {
             None => None,
         };
         Ok(Client {
-            models: ModelServiceClient::new(channel.clone()),
-            poses: PoseServiceClient::new(channel.clone()),
-            adapt: AdaptationServiceClient::new(channel),
+            pool: Arc::new(pool),
             token,
             retries: options.retries,
             buffer_full_retries: options.buffer_full_retries,
@@ -205,25 +223,33 @@ impl Client {
     /// Every model the server has configured, ready or not, by category.
     pub async fn list_models(&self) -> Result<Vec<ModelInfo>, Error> {
         let response = self
-            .retrying(|| async { self.models.clone().list_models(self.request(ListModelsRequest {})).await })
+            .retrying(
+                |ch| async move { ModelServiceClient::new(ch).list_models(self.request(ListModelsRequest {})).await },
+            )
             .await?;
         Ok(response.into_inner().models)
     }
 
     /// One category's model in detail.
     pub async fn describe_model(&self, category: &str) -> Result<ModelDescription, Error> {
-        let message = DescribeModelRequest { category: category.into() };
-        let response =
-            self.retrying(|| async { self.models.clone().describe_model(self.request(message.clone())).await }).await?;
+        let message = &DescribeModelRequest { category: category.into() };
+        let response = self
+            .retrying(
+                |ch| async move { ModelServiceClient::new(ch).describe_model(self.request(message.clone())).await },
+            )
+            .await?;
         Ok(response.into_inner())
     }
 
     /// Every complete version of `category` (by id) and its activation log (newest, i.e.
     /// active, first).
     pub async fn list_versions(&self, category: &str) -> Result<ListVersionsResponse, Error> {
-        let message = ListVersionsRequest { category: category.into() };
-        let response =
-            self.retrying(|| async { self.models.clone().list_versions(self.request(message.clone())).await }).await?;
+        let message = &ListVersionsRequest { category: category.into() };
+        let response = self
+            .retrying(
+                |ch| async move { ModelServiceClient::new(ch).list_versions(self.request(message.clone())).await },
+            )
+            .await?;
         Ok(response.into_inner())
     }
 
@@ -238,15 +264,15 @@ impl Client {
         reason: &str,
         expected_generation: Option<u64>,
     ) -> Result<ActivationEntry, Error> {
-        let message = ActivateRequest {
+        let message = &ActivateRequest {
             category: category.into(),
             version: version.into(),
             reason: reason.into(),
             expected_generation,
         };
-        let call = || async { self.models.clone().activate(self.request(message.clone())).await };
+        let call = |ch| async move { ModelServiceClient::new(ch).activate(self.request(message.clone())).await };
         let Some(expected) = expected_generation else {
-            return Ok(call().await?.into_inner());
+            return Ok(self.once(call).await?.into_inner());
         };
         let landed = |log: &ListVersionsResponse| activation_landed(log, expected, version, reason).cloned();
         self.retrying_activation(category, call, landed).await
@@ -260,10 +286,10 @@ impl Client {
         reason: &str,
         expected_generation: Option<u64>,
     ) -> Result<ActivationEntry, Error> {
-        let message = RollbackRequest { category: category.into(), reason: reason.into(), expected_generation };
-        let call = || async { self.models.clone().rollback(self.request(message.clone())).await };
+        let message = &RollbackRequest { category: category.into(), reason: reason.into(), expected_generation };
+        let call = |ch| async move { ModelServiceClient::new(ch).rollback(self.request(message.clone())).await };
         let Some(expected) = expected_generation else {
-            return Ok(call().await?.into_inner());
+            return Ok(self.once(call).await?.into_inner());
         };
         let landed = |log: &ListVersionsResponse| rollback_landed(log, expected, reason).cloned();
         self.retrying_activation(category, call, landed).await
@@ -279,58 +305,140 @@ impl Client {
         landed: impl Fn(&ListVersionsResponse) -> Option<ActivationEntry>,
     ) -> Result<ActivationEntry, Error>
     where
-        F: Fn() -> Fut,
+        F: Fn(Channel) -> Fut,
         Fut: Future<Output = Result<tonic::Response<ActivationEntry>, Status>>,
     {
-        let mut attempt = 0;
+        let mut tries = Tries::default();
         loop {
-            match call().await {
-                Ok(response) => return Ok(response.into_inner()),
-                Err(status) if retryable(&status) && attempt < self.retries => {
-                    tokio::time::sleep(delay(&status, attempt)).await;
-                    attempt += 1;
-                }
-                Err(status) if status.code() == Code::Aborted && attempt > 0 => {
+            let (endpoint, channel) = self.pool.pick();
+            let status = match call(channel).await {
+                Err(status) if retryable(&status) => status,
+                Err(status) if status.code() == Code::Aborted && tries.total > 0 => {
+                    self.pool.answered(endpoint);
                     let log = self.list_versions(category).await;
                     return log.ok().as_ref().and_then(&landed).ok_or(Error::Rpc(status));
                 }
-                Err(status) => return Err(status.into()),
-            }
+                answer => {
+                    self.pool.answered(endpoint);
+                    return Ok(answer?.into_inner());
+                }
+            };
+            self.again(&mut tries, endpoint, status).await?;
         }
     }
 
     /// Estimates the pose(s) in one image, retrying (estimates are idempotent) while the server
     /// is overloaded or unreachable.
     pub async fn estimate(&self, message: EstimateRequest) -> Result<EstimateResponse, Error> {
-        let response =
-            self.retrying(|| async { self.poses.clone().estimate(self.request(message.clone())).await }).await?;
+        let message = &message;
+        let response = self
+            .retrying(|ch| async move { PoseServiceClient::new(ch).estimate(self.request(message.clone())).await })
+            .await?;
         Ok(response.into_inner())
     }
 
-    /// Streams frames; one response per frame, in order. Failed frames carry `error`.
-    pub async fn estimate_stream(
-        &self,
-        frames: impl Stream<Item = EstimateRequest> + Send + 'static,
-    ) -> Result<Streaming<EstimateResponse>, Error> {
-        Ok(self.poses.clone().estimate_stream(self.request(frames)).await?.into_inner())
-    }
-
-    async fn retrying<T, F, Fut>(&self, call: F) -> Result<T, Status>
+    /// An idempotent call: on the next endpoint up, tried again (see the crate's documentation)
+    /// while the endpoints are unreachable or UNAVAILABLE.
+    async fn retrying<T, F, Fut>(&self, call: F) -> Result<T, Error>
     where
-        F: Fn() -> Fut,
+        F: Fn(Channel) -> Fut,
         Fut: Future<Output = Result<T, Status>>,
     {
-        let mut attempt = 0;
+        Ok(self.retrying_on(call).await?.1)
+    }
+
+    /// [`Client::retrying`], also saying which endpoint answered (a stream's, to mark it down if
+    /// the stream breaks).
+    async fn retrying_on<T, F, Fut>(&self, call: F) -> Result<(usize, T), Error>
+    where
+        F: Fn(Channel) -> Fut,
+        Fut: Future<Output = Result<T, Status>>,
+    {
+        let mut tries = Tries::default();
         loop {
-            match call().await {
-                Err(status) if retryable(&status) && attempt < self.retries => {
-                    tokio::time::sleep(delay(&status, attempt)).await;
-                    attempt += 1;
+            let (endpoint, channel) = self.pool.pick();
+            let status = match call(channel).await {
+                Err(status) if retryable(&status) => status,
+                answer => {
+                    self.pool.answered(endpoint);
+                    return Ok((endpoint, answer?));
                 }
-                other => return other,
+            };
+            self.again(&mut tries, endpoint, status).await?;
+        }
+    }
+
+    /// A call that is not safe to repeat: sent once, to the next endpoint up.
+    async fn once<T, F, Fut>(&self, call: F) -> Result<T, Error>
+    where
+        F: FnOnce(Channel) -> Fut,
+        Fut: Future<Output = Result<T, Status>>,
+    {
+        let (endpoint, channel) = self.pool.pick();
+        match call(channel).await {
+            Err(status) if retryable(&status) => {
+                self.pool.failed(endpoint);
+                Err(status.into())
+            }
+            answer => {
+                self.pool.answered(endpoint);
+                Ok(answer?)
             }
         }
     }
+
+    /// After a try on `endpoint` failed with `status`: `Ok` to try again, at once while an
+    /// endpoint not yet tried since the last pause is up, else after a pause (the server's hint
+    /// or backoff), at most `retries` pauses; `Err` to give up. Marks the endpoint down when the
+    /// failure is its (unreachable, UNAVAILABLE).
+    async fn again(&self, tries: &mut Tries, endpoint: usize, status: Status) -> Result<(), Error> {
+        if !retryable(&status) {
+            return Err(status.into());
+        }
+        self.pool.failed(endpoint);
+        tries.total += 1;
+        tries.since_pause += 1;
+        if tries.since_pause < self.pool.len() && self.pool.any_up() {
+            return Ok(());
+        }
+        if tries.pauses >= self.retries {
+            return Err(Error::GaveUp { status, tries: tries.total, endpoints: self.pool.names() });
+        }
+        tokio::time::sleep(delay(&status, tries.pauses)).await;
+        tries.pauses += 1;
+        tries.since_pause = 0;
+        Ok(())
+    }
+}
+
+/// The builder of one endpoint's connections.
+fn endpoint(name: &str, tls: bool, options: &ClientOptions) -> Result<Endpoint, Error> {
+    let invalid = |source| Error::InvalidEndpoint { endpoint: name.to_owned(), source };
+    let endpoint = Endpoint::from_shared(with_scheme(name, tls)).map_err(invalid)?.connect_timeout(CONNECT_TIMEOUT);
+    if !tls {
+        return Ok(endpoint);
+    }
+    let mut config = ClientTlsConfig::new();
+    config = match &options.ca_cert {
+        Some(pem) => config.ca_certificate(Certificate::from_pem(pem)),
+        None => config.with_native_roots(),
+    };
+    if let Some(domain) = &options.tls_domain {
+        config = config.domain_name(domain.clone());
+    }
+    endpoint.tls_config(config).map_err(invalid)
+}
+
+/// The innermost cause of a status made from a connection's failure (`: Connection refused (os
+/// error 111)`), which its message (`tcp connect error`) leaves out; empty for the server's.
+fn cause(status: &Status) -> String {
+    let mut source = std::error::Error::source(status);
+    let mut last = None;
+    while let Some(s) = source {
+        last = Some(s);
+        source = s.source();
+    }
+    last.map(|s| s.to_string()).filter(|s| *s != status.message()).map_or_else(String::new, |s| format!(": {s}"))
 }
 
 /// An estimate request for an encoded image (PNG, JPEG, WebP) with no boxes.
@@ -420,9 +528,29 @@ mod tests {
         let reset = std::io::Error::new(std::io::ErrorKind::ConnectionReset, "reset by peer");
         let broken = Status::from_error(Box::new(reset));
         assert!(transport_error(&broken) && retryable(&broken), "{broken:?}");
+        assert_eq!(cause(&broken), "", "the message says it all");
+        assert_eq!(cause(&Status::unavailable("busy")), "");
         // The same codes sent by the server are its answer.
         assert!(!retryable(&Status::internal("bug")) && !retryable(&Status::unknown("?")));
         assert!(!retryable(&Status::aborted("stale generation")));
+    }
+
+    /// hyper's way: a message, and the I/O error that says why as its source.
+    #[derive(Debug, thiserror::Error)]
+    #[error("tcp connect error")]
+    struct ConnectError(#[source] std::io::Error);
+
+    #[test]
+    fn a_transport_failure_names_its_cause() {
+        let refused = std::io::Error::new(std::io::ErrorKind::ConnectionRefused, "connection refused");
+        let status = Status::from_error(Box::new(ConnectError(refused)));
+        assert_eq!((status.message(), cause(&status).as_str()), ("tcp connect error", ": connection refused"));
+        let error = Error::GaveUp { status, tries: 3, endpoints: "a:1, b:2".into() };
+        assert_eq!(
+            error.to_string(),
+            "Unknown: tcp connect error: connection refused (gave up after 3 tries on a:1, b:2)"
+        );
+        assert_eq!(error.code(), Some(Code::Unknown));
     }
 
     fn entry(generation: u64, version: &str, previous: &str, reason: &str) -> ActivationEntry {

@@ -56,10 +56,20 @@ lines, then {\"result\": ...}. Exit status: 0 ACTIVATED, 3 another terminal stat
 #[derive(Debug, Parser)]
 #[command(version)]
 struct Cli {
-    /// The server's gRPC address(es): `host:port` or `http(s)://host:port`, comma-separated to
-    /// spread calls over replicas.
-    #[arg(long, env = "UDAPOSE_ENDPOINT", default_value = "127.0.0.1:50051", global = true, value_delimiter = ',')]
-    endpoint: Vec<String>,
+    /// The server's gRPC address(es): `host:port` or `http(s)://host:port`, comma-separated (or
+    /// repeated) for replicas. Calls go to each endpoint up in turn; one that is unreachable or
+    /// UNAVAILABLE is passed over for 1 s (doubled per failure in a row, at most 10 s), then tried
+    /// again. A call safe to repeat fails over to the next endpoint at once, and a broken stream
+    /// reopens there.
+    #[arg(
+        long,
+        visible_alias = "endpoint",
+        env = "UDAPOSE_ENDPOINT",
+        default_value = "127.0.0.1:50051",
+        global = true,
+        value_delimiter = ','
+    )]
+    endpoints: Vec<String>,
     /// Bearer token.
     #[arg(long, env = "UDAPOSE_TOKEN", hide_env_values = true, global = true)]
     token: Option<String>,
@@ -69,8 +79,9 @@ struct Cli {
     /// Name to verify the server's certificate against (default: the endpoint's host).
     #[arg(long, global = true)]
     tls_domain: Option<String>,
-    /// Retries of a call answered UNAVAILABLE (overloaded) or broken by the network, with
-    /// backoff (only calls that are safe to repeat); for a stream, reconnections in a row.
+    /// Retries, with backoff, of a call that every endpoint answered UNAVAILABLE (overloaded) or
+    /// could not take (network), only for calls that are safe to repeat; for a stream,
+    /// reconnections in a row without progress.
     #[arg(long, default_value_t = 4, global = true)]
     retries: u32,
     #[command(subcommand)]
@@ -229,12 +240,11 @@ async fn run(cli: Cli) -> Result<ExitCode> {
         None => None,
     };
     let options = ClientOptions {
-        endpoints: cli.endpoint.clone(),
+        endpoints: cli.endpoints.clone(),
         token: cli.token.clone(),
         ca_cert,
         tls_domain: cli.tls_domain.clone(),
         retries: cli.retries,
-        eager: cli.endpoint.len() == 1,
         ..ClientOptions::new("")
     };
     let options = match &cli.command {
