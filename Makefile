@@ -30,16 +30,21 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 QUICK_DATA := $(UDAPOSE_CACHE)/run/syncar-quick
 # One quick source model per run, trained on it, for the tests that need a model.
 QUICK_MODEL := $(UDAPOSE_CACHE)/run/quick-model
+# A real S3-compatible server for the scale-out test (tests/tests/scale.rs), on loopback. Later
+# versions need a newer rustc; it honours `If-None-Match: *` on PUT.
+S3S_FS_VERSION := 0.14.1
+S3S_FS := $(UDAPOSE_CACHE)/tools/s3s-fs-$(S3S_FS_VERSION)/bin/s3s-fs
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service doctor fmt lint clean-cache
+.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) quick-data quick-model
-	UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) cargo test $(CARGO_FLAGS) --workspace
+test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(S3S_FS) quick-data quick-model
+	UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) UDAPOSE_S3S_FS=$(S3S_FS) \
+		cargo test $(CARGO_FLAGS) --workspace
 
 build: venv
 	cargo build $(CARGO_FLAGS) --workspace
@@ -52,6 +57,10 @@ $(TORCH_STAMP):
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check torch==$(TORCH_VERSION)
 	touch $@
+
+$(S3S_FS):
+	@echo "installing s3s-fs $(S3S_FS_VERSION) (first time: ~3 min)"
+	cargo install s3s-fs --version $(S3S_FS_VERSION) --features binary --locked --root $(dir $(@D))
 
 $(CORRUPTIONS_STAMP): $(TORCH_STAMP)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check imagecorruptions-imaug==$(CORRUPTIONS_VERSION)
@@ -100,6 +109,23 @@ fmt:
 lint: venv
 	cargo fmt --all -- --check
 	cargo clippy $(CARGO_FLAGS) --workspace --all-targets -- -D warnings
+
+# The Kubernetes manifests and the compose file (deploy/check.sh): render every overlay,
+# kubernetes-validate (strict), checkov, compose checks. Its tools go to a venv in the cache.
+deploy-check:
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) bash deploy/check.sh
+
+# The container image localhost/udapose:$(IMAGE_VARIANT) (deploy/IMAGE.md): podman from Debian's
+# packages (installed when missing), a debian:bookworm-slim base made with debootstrap (cached),
+# the release binaries as they are (built only when missing: run `make build` to refresh them)
+# with exactly the libtorch libraries they load, then a smoke test of the image in a chroot.
+# IMAGE_VARIANT=cuda: the CUDA variant (several GB).
+IMAGE_VARIANT ?= cpu
+image: $(if $(and $(wildcard $(BIN)/udapose-server),$(wildcard $(BIN)/udapose)),,build)
+	deploy/image/setup.sh
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) deploy/image/base.sh
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) BIN_DIR=$(BIN) VARIANT=$(IMAGE_VARIANT) deploy/image/build.sh
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) VARIANT=$(IMAGE_VARIANT) deploy/image/smoke.sh
 
 clean-cache:
 	rm -rf $(UDAPOSE_CACHE)

@@ -1,26 +1,30 @@
 //! The target-image buffer (ARCHITECTURE.md "State"): per category, acknowledged target images
-//! on disk, named by the sha256 of their bytes.
+//! in the store, named by the sha256 of their bytes.
 //!
 //! ```text
-//! <root>/buffers/<category>/<sha256>.img    the image bytes, as received
-//! <root>/buffers/<category>/<sha256>.json   written last: the image counts once this exists
+//! buffers/<category>/<sha256>.img    the image bytes, as received
+//! buffers/<category>/<sha256>.json   written last: the image counts once this exists
 //! ```
 //!
-//! Both files are create-only writes (synced, then hard-linked into place), and an image is
-//! acknowledged only once its `.json` exists, so nothing acknowledged is lost by a crash. An
-//! `.img` without its `.json` (a crash between the two) is reused when the image comes again.
+//! Both are create-only writes, and an image is acknowledged only once its `.json` exists, so
+//! nothing acknowledged is lost by a crash. An `.img` without its `.json` (a crash between the
+//! two) is kept when the image comes again (same name, same bytes). Any replica may write here;
+//! the adaptation worker reads.
 
 use std::{
-    collections::BTreeSet,
-    fs, io,
-    path::{Path, PathBuf},
+    collections::{BTreeSet, HashMap},
     sync::Mutex,
+    time::{Duration, Instant},
 };
 
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
-use crate::store::{create_only, nanos};
+pub use crate::store::sha256_hex;
+use crate::store::{Store, StoreError, nanos};
+
+/// How long a category's image count is trusted before it is listed again (other replicas
+/// add images too, so across replicas the capacity is approximate by this much).
+const COUNT_TTL: Duration = Duration::from_secs(2);
 
 /// What happened to one streamed image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -42,44 +46,63 @@ pub struct TargetMeta {
     pub received: f64,
 }
 
-/// One category's buffered images on disk, bounded by `capacity`.
+/// The categories' buffered images in the store, each bounded by `capacity`.
 pub struct Buffer {
-    root: PathBuf,
+    store: Store,
     pub capacity: usize,
-    /// Serialises puts, so the capacity check and the write are one step in this process.
-    lock: Mutex<()>,
-}
-
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+    /// Image counts per category and when they were listed; the lock also serialises puts, so
+    /// the capacity check and the write are one step in this process.
+    counts: Mutex<HashMap<String, (usize, Instant)>>,
 }
 
 impl Buffer {
-    pub fn new(store_root: &Path, capacity: usize) -> Self {
-        Buffer { root: store_root.join("buffers"), capacity, lock: Mutex::new(()) }
+    pub fn new(store: Store, capacity: usize) -> Self {
+        Buffer { store, capacity, counts: Mutex::new(HashMap::new()) }
     }
 
-    fn dir(&self, category: &str) -> PathBuf {
-        self.root.join(category)
+    fn key(category: &str, sha: &str, ext: &str) -> String {
+        format!("buffers/{category}/{sha}.{ext}")
+    }
+
+    fn counts(&self) -> std::sync::MutexGuard<'_, HashMap<String, (usize, Instant)>> {
+        self.counts.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The number of buffered images of `category`, listed at most every `COUNT_TTL`.
+    pub fn count(&self, category: &str) -> Result<usize, StoreError> {
+        let mut counts = self.counts();
+        Self::count_locked(self, &mut counts, category)
+    }
+
+    fn count_locked(
+        &self,
+        counts: &mut HashMap<String, (usize, Instant)>,
+        category: &str,
+    ) -> Result<usize, StoreError> {
+        match counts.get(category) {
+            Some(&(n, at)) if at.elapsed() < COUNT_TTL => Ok(n),
+            _ => {
+                let n = self.list(category)?.len();
+                counts.insert(category.to_owned(), (n, Instant::now()));
+                Ok(n)
+            }
+        }
     }
 
     /// Stores `bytes` (already decoded and checked by the caller) unless the buffer is full.
     /// Returns the status and the number of images buffered afterwards.
-    pub fn put(&self, category: &str, bytes: &[u8], width: u32, height: u32) -> io::Result<(AckStatus, usize)> {
-        let _guard = self.lock.lock().unwrap_or_else(|p| p.into_inner());
+    pub fn put(&self, category: &str, bytes: &[u8], width: u32, height: u32) -> Result<(AckStatus, usize), StoreError> {
+        let mut counts = self.counts();
         let sha = sha256_hex(bytes);
-        let dir = self.dir(category);
-        let meta_path = dir.join(format!("{sha}.json"));
-        let count = self.list(category)?.len();
-        if meta_path.is_file() {
+        let count = self.count_locked(&mut counts, category)?;
+        if self.store.exists(&Self::key(category, &sha, "json"))? {
             return Ok((AckStatus::Duplicate, count));
         }
         if count >= self.capacity {
             return Ok((AckStatus::Rejected, count));
         }
-        fs::create_dir_all(&dir)?;
-        // A leftover `.img` holds these very bytes (its name is their hash): create_only keeps it.
-        create_only(&dir.join(format!("{sha}.img")), bytes)?;
+        // A leftover `.img` holds these very bytes (its name is their hash): create keeps it.
+        self.store.create(&Self::key(category, &sha, "img"), bytes.to_vec())?;
         let meta = TargetMeta {
             sha256: sha.clone(),
             bytes: bytes.len() as u64,
@@ -87,51 +110,42 @@ impl Buffer {
             height,
             received: nanos() as f64 / 1e9,
         };
-        let json = serde_json::to_vec_pretty(&meta).map_err(io::Error::other)?;
-        create_only(&meta_path, &json)?;
+        let json = serde_json::to_vec_pretty(&meta).expect("a target record serialises");
+        self.store.create(&Self::key(category, &sha, "json"), json)?;
+        if let Some((n, _)) = counts.get_mut(category) {
+            *n += 1;
+        }
         Ok((AckStatus::Accepted, count + 1))
     }
 
     /// The sha256 ids of the category's complete (acknowledged) images, sorted.
-    pub fn list(&self, category: &str) -> io::Result<BTreeSet<String>> {
-        let dir = self.dir(category);
-        let mut out = BTreeSet::new();
-        let entries = match fs::read_dir(&dir) {
-            Ok(e) => e,
-            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(out),
-            Err(e) => return Err(e),
-        };
-        for entry in entries {
-            let name = entry?.file_name();
-            if let Some(sha) = name.to_str().and_then(|n| n.strip_suffix(".json"))
-                && sha.len() == 64
-                && sha.bytes().all(|b| b.is_ascii_hexdigit())
-            {
-                out.insert(sha.to_owned());
-            }
-        }
-        Ok(out)
+    pub fn list(&self, category: &str) -> Result<BTreeSet<String>, StoreError> {
+        let files = self.store.list(&format!("buffers/{category}"))?.files;
+        Ok(files
+            .iter()
+            .filter_map(|n| n.strip_suffix(".json"))
+            .filter(|sha| sha.len() == 64 && sha.bytes().all(|b| b.is_ascii_hexdigit()))
+            .map(str::to_owned)
+            .collect())
     }
 
-    pub fn read(&self, category: &str, sha: &str) -> io::Result<Vec<u8>> {
-        fs::read(self.dir(category).join(format!("{sha}.img")))
+    pub fn read(&self, category: &str, sha: &str) -> Result<Vec<u8>, StoreError> {
+        let key = Self::key(category, sha, "img");
+        self.store.read(&key)?.ok_or_else(|| StoreError::Corrupt { path: key, reason: "missing".into() })
     }
 
     /// Drops images a finished job used: the `.json` first, so a crash in between leaves an
     /// unacknowledged `.img` that nothing counts.
     pub fn remove(&self, category: &str, shas: &[String]) {
-        let _guard = self.lock.lock().unwrap_or_else(|p| p.into_inner());
-        let dir = self.dir(category);
+        let mut counts = self.counts();
         for sha in shas {
             for ext in ["json", "img"] {
-                let path = dir.join(format!("{sha}.{ext}"));
-                if let Err(e) = fs::remove_file(&path)
-                    && e.kind() != io::ErrorKind::NotFound
-                {
-                    tracing::warn!("cannot remove {}: {e}", path.display());
+                if let Err(e) = self.store.delete(&Self::key(category, sha, ext)) {
+                    tracing::warn!("cannot remove a buffered image: {e}");
                 }
             }
         }
+        counts.remove(category);
     }
 }
 
@@ -142,14 +156,15 @@ mod tests {
     #[test]
     fn images_are_acknowledged_once_and_bounded() {
         let root = std::env::temp_dir().join(format!("udapose-buffer-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&root);
-        let buffer = Buffer::new(&root, 2);
+        let _ = std::fs::remove_dir_all(&root);
+        let store = Store::open(&root).unwrap();
+        let buffer = Buffer::new(store.clone(), 2);
         assert_eq!(buffer.put("car", b"one", 1, 1).unwrap(), (AckStatus::Accepted, 1));
         assert_eq!(buffer.put("car", b"one", 1, 1).unwrap(), (AckStatus::Duplicate, 1));
         // A crash between the image and its record: the image is not counted, and a resend
         // completes it.
         let sha = sha256_hex(b"two");
-        create_only(&root.join(format!("buffers/car/{sha}.img")), b"two").unwrap();
+        store.create(&format!("buffers/car/{sha}.img"), b"two".to_vec()).unwrap();
         assert_eq!(buffer.list("car").unwrap().len(), 1);
         assert_eq!(buffer.put("car", b"two", 1, 1).unwrap(), (AckStatus::Accepted, 2));
         assert_eq!(buffer.put("car", b"three", 1, 1).unwrap(), (AckStatus::Rejected, 2));
@@ -157,6 +172,6 @@ mod tests {
         buffer.remove("car", &[sha]);
         assert_eq!(buffer.list("car").unwrap().len(), 1);
         assert_eq!(buffer.put("car", b"three", 1, 1).unwrap(), (AckStatus::Accepted, 2));
-        fs::remove_dir_all(&root).unwrap();
+        std::fs::remove_dir_all(&root).unwrap();
     }
 }

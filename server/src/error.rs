@@ -115,7 +115,9 @@ impl From<crate::store::StoreError> for ApiError {
             S::UnknownVersion { .. } => ApiError::NotFound(e.to_string()),
             S::Conflict { .. } => ApiError::Aborted(e.to_string()),
             S::NoPrevious(_) => ApiError::FailedPrecondition(e.to_string()),
-            S::Io { .. } | S::Corrupt { .. } => ApiError::Internal(e.to_string()),
+            // The store (S3 on the network) may come back: a retry is worth it.
+            S::Object { .. } => ApiError::unavailable(e.to_string()),
+            S::Io { .. } | S::Corrupt { .. } | S::Url { .. } | S::NotCreateOnly(_) => ApiError::Internal(e.to_string()),
         }
     }
 }

@@ -7,9 +7,16 @@
 //! from + 1. Its history is persisted event by event:
 //!
 //! ```text
-//! <root>/jobs/<job-id>/job.json               what it runs on (images, source version, settings)
-//! <root>/jobs/<job-id>/events/<seq:08>.json   its history; its state is the last event's
+//! jobs/<job-id>/job.json               what it runs on (images, source version, settings)
+//! jobs/<job-id>/events/<seq:08>.json   its history; its state is the last event's
+//! jobs/<job-id>/cancel.json            a cancellation asked on a replica that does not run it
 //! ```
+//!
+//! Roles: every process reads jobs from the store (so `WatchJob` works on any replica, polling
+//! every `poll`), but only a process that runs jobs (`--role all|adapt`) executes them. A job
+//! created on a serve replica is a record in the store that the worker picks up. Events are
+//! create-only writes: a worker whose event already exists has lost the job to another worker
+//! and stands by, so two workers never both run a job to its end.
 //!
 //! Policy: a job starts when a category holds at least `min_images` images no job has claimed
 //! and none of its jobs is queued or running, or when a client asks. Images that arrive during
@@ -20,14 +27,12 @@
 
 use std::{
     collections::{BTreeMap, VecDeque},
-    fs,
     ops::ControlFlow,
-    path::{Path, PathBuf},
     sync::{
         Arc, Condvar, Mutex,
         atomic::{AtomicBool, Ordering},
     },
-    time::Instant,
+    time::{Duration, Instant},
 };
 
 use anyhow::{Context, Result, anyhow, bail};
@@ -37,7 +42,7 @@ use tch::{Device, Tensor};
 use udapose_engine::{
     EngineError,
     adapt::{self, AdaptConfig, Event},
-    checkpoint::{self, MANIFEST, Manifest},
+    checkpoint::{self, Manifest},
     gate::{self, Criterion, GateConfig},
     input::{self, Rgb8Image},
 };
@@ -47,7 +52,7 @@ use crate::{
     decode::{self, DecodeLimits},
     error::ApiError,
     registry::Registry,
-    store::{Store, StoreError, create_only, nanos},
+    store::{Store, StoreError, failpoint, nanos},
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -150,11 +155,20 @@ pub struct JobsConfig {
     pub gate: GateConfig,
     pub device: Device,
     pub decode: DecodeLimits,
+    /// Whether this process runs jobs (`--role all|adapt`) or only records and watches them.
+    pub runs_jobs: bool,
+    /// Whether a job that fails the gate stays inactive (`--gate enforce`) or is activated with
+    /// the verdict in its activation's reason (`--gate advisory`).
+    pub enforce_gate: bool,
+    /// How often the store is read for jobs and images other processes wrote.
+    pub poll: Duration,
 }
 
 struct Memo {
     spec: JobSpec,
     last: JobEvent,
+    /// This process runs the job (its events are written here, not read from the store).
+    owned: bool,
     cancel: Arc<AtomicBool>,
     cancel_reason: String,
 }
@@ -166,7 +180,6 @@ struct Inner {
 }
 
 pub struct Jobs {
-    root: PathBuf,
     store: Store,
     pub buffer: Buffer,
     registry: Arc<Registry>,
@@ -181,14 +194,12 @@ fn now() -> f64 {
 }
 
 impl Jobs {
-    /// Loads every job from the store, recovers the interrupted ones, and starts the runner
-    /// thread (one job at a time: a job uses every core it gets).
+    /// Loads every job from the store, recovers the interrupted ones (when it runs jobs), and
+    /// starts the runner thread (one job at a time: a job uses every core it gets) and the
+    /// store poller.
     pub fn start(store: Store, registry: Arc<Registry>, buffer: Buffer, config: JobsConfig) -> Result<Arc<Self>> {
-        let root = store.root().join("jobs");
-        fs::create_dir_all(&root).with_context(|| format!("creating {}", root.display()))?;
         let (events, _) = tokio::sync::broadcast::channel(1024);
         let jobs = Arc::new(Jobs {
-            root,
             store,
             buffer,
             registry,
@@ -197,49 +208,102 @@ impl Jobs {
             wake: Condvar::new(),
             events,
         });
-        jobs.recover()?;
-        let runner = Arc::downgrade(&jobs);
-        std::thread::Builder::new()
-            .name("adapt".into())
-            .spawn(move || run(&runner))
-            .context("spawning the adaptation thread")?;
-        let categories: Vec<String> = jobs.registry.categories().map(|c| c.name.clone()).collect();
-        for category in categories {
-            jobs.maybe_start(&category);
+        jobs.sync(true)?;
+        if jobs.config.runs_jobs {
+            let runner = Arc::downgrade(&jobs);
+            std::thread::Builder::new()
+                .name("adapt".into())
+                .spawn(move || run(&runner))
+                .context("spawning the adaptation thread")?;
+            jobs.start_by_policy();
         }
+        let poller = Arc::downgrade(&jobs);
+        let period = jobs.config.poll;
+        if period.is_zero() {
+            return Ok(jobs);
+        }
+        std::thread::Builder::new()
+            .name("jobs-poll".into())
+            .spawn(move || {
+                while let Some(j) = poller.upgrade() {
+                    if let Err(e) = j.sync(false) {
+                        tracing::warn!("reading jobs from the store: {e:#}");
+                    }
+                    if j.config.runs_jobs {
+                        j.start_by_policy();
+                    }
+                    drop(j);
+                    std::thread::sleep(period);
+                }
+            })
+            .context("spawning the jobs poller")?;
         Ok(jobs)
+    }
+
+    fn start_by_policy(&self) {
+        let categories: Vec<String> = self.registry.categories().map(|c| c.name.clone()).collect();
+        for category in categories {
+            self.maybe_start(&category);
+        }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn job_dir(&self, id: &str) -> PathBuf {
-        self.root.join(id)
-    }
-
-    /// Reads every job; re-queues the interrupted ones; finishes the cleanup of ended ones.
-    fn recover(&self) -> Result<()> {
+    /// Reads the jobs in the store this process does not run: new ones, and new events of
+    /// those still going (published to watchers). A process that runs jobs also takes the
+    /// queued ones, the interrupted ones at `restart`, and cancellations asked elsewhere, and
+    /// finishes the cleanup of ended ones.
+    fn sync(&self, restart: bool) -> Result<()> {
         let mut found = Vec::new();
-        for entry in fs::read_dir(&self.root).with_context(|| format!("reading {}", self.root.display()))? {
-            let dir = entry?.path();
-            match read_job(&dir) {
-                Ok(Some(job)) => found.push(job),
-                Ok(None) => {} // created but never written: debris of a crash, nothing claimed
-                Err(e) => tracing::warn!("skipping job {}: {e:#}", dir.display()),
+        for id in self.store.list("jobs")?.dirs {
+            let known = self.lock().jobs.get(&id).map(|m| (m.owned, m.last.state.terminal(), m.last.seq));
+            match known {
+                None => match read_job(&self.store, &id) {
+                    Ok(Some(job)) => found.push(job),
+                    Ok(None) => {} // created but never written: debris of a crash, nothing claimed
+                    Err(e) => tracing::warn!("skipping job {id}: {e:#}"),
+                },
+                Some((false, false, seq)) => self.follow(&id, seq)?,
+                Some((true, false, _)) if self.config.runs_jobs => {
+                    if let Some(reason) = self.store.read(&job_key(&id, "cancel.json"))? {
+                        let reason = String::from_utf8_lossy(&reason).into_owned();
+                        let _ = self.cancel(&id, &reason);
+                    }
+                }
+                Some(_) => {}
             }
         }
         found.sort_by(|a, b| a.0.created.total_cmp(&b.0.created));
         for (spec, events) in found {
+            if events.is_empty() && !restart {
+                continue; // being created: its first event follows
+            }
             let id = spec.job_id.clone();
             let last = events.last().cloned().unwrap_or_else(|| first_event(&spec));
             let state = if events.is_empty() { None } else { Some(last.state) };
             self.lock().jobs.insert(
                 id.clone(),
-                Memo { spec: spec.clone(), last, cancel: Default::default(), cancel_reason: String::new() },
+                Memo {
+                    spec: spec.clone(),
+                    last,
+                    owned: false,
+                    cancel: Default::default(),
+                    cancel_reason: String::new(),
+                },
             );
+            if !self.config.runs_jobs {
+                continue;
+            }
+            self.lock().jobs.get_mut(&id).expect("inserted above").owned = true;
             match state {
                 Some(s) if s.terminal() => self.release(&spec),
+                Some(JobState::Queued) if !restart => {
+                    tracing::info!(job = %id, "took a job queued on another replica");
+                    self.lock().queue.push_back(id);
+                    self.wake.notify_all();
+                }
                 Some(JobState::Validating) if self.activated_by(&spec)? => {
                     self.append(&id, JobState::Activated, |e| {
                         e.message = "found in the activation log after a restart".into();
@@ -251,8 +315,24 @@ impl Jobs {
                         e.message = "interrupted by a restart; runs again from its buffered images".into();
                     })?;
                     self.lock().queue.push_back(id);
+                    self.wake.notify_all();
                 }
             }
+        }
+        Ok(())
+    }
+
+    /// Publishes the events another process wrote for job `id` after `seq`.
+    fn follow(&self, id: &str, seq: u64) -> Result<()> {
+        for event in read_events(&self.store, id, seq)? {
+            let mut inner = self.lock();
+            let Some(memo) = inner.jobs.get_mut(id) else { return Ok(()) };
+            if event.seq <= memo.last.seq {
+                continue;
+            }
+            memo.last = event.clone();
+            drop(inner);
+            let _ = self.events.send(event);
         }
         Ok(())
     }
@@ -270,7 +350,7 @@ impl Jobs {
             sha256: sha256.clone(),
             status: AckStatus::Rejected,
             reason,
-            buffered: self.buffer.list(category).map_or(0, |l| l.len()),
+            buffered: self.buffer.count(category).unwrap_or(0),
             capacity,
             job_id: None,
         };
@@ -290,7 +370,9 @@ impl Jobs {
                 ..rejected(String::new())
             },
             Ok((status, buffered)) => {
-                let job_id = (status == AckStatus::Accepted).then(|| self.maybe_start(category)).flatten();
+                let job_id = (status == AckStatus::Accepted && self.config.runs_jobs)
+                    .then(|| self.maybe_start(category))
+                    .flatten();
                 TargetAck { sha256, status, reason: String::new(), buffered, capacity, job_id }
             }
             Err(e) => rejected(format!("STORAGE: {e}")),
@@ -298,7 +380,7 @@ impl Jobs {
     }
 
     /// Buffered images no queued or running job holds.
-    fn unclaimed(&self, inner: &Inner, category: &str) -> std::io::Result<Vec<String>> {
+    fn unclaimed(&self, inner: &Inner, category: &str) -> Result<Vec<String>, StoreError> {
         let mut free = self.buffer.list(category)?;
         for m in inner.jobs.values().filter(|m| m.spec.category == category && !m.last.state.terminal()) {
             for sha in m.spec.train.iter().chain(&m.spec.held_out) {
@@ -343,6 +425,10 @@ impl Jobs {
         overrides: Overrides,
         client_job_id: Option<String>,
     ) -> Result<JobView, ApiError> {
+        if !self.config.runs_jobs {
+            // Jobs created on other replicas claim images too.
+            self.sync(false).map_err(|e| ApiError::Internal(format!("reading jobs: {e:#}")))?;
+        }
         {
             let inner = self.lock();
             if let Some(id) = &client_job_id
@@ -394,27 +480,26 @@ impl Jobs {
             held_out,
             created,
         };
-        let dir = self.job_dir(&spec.job_id);
-        let write = || -> std::io::Result<()> {
-            fs::create_dir_all(dir.join("events"))?;
-            let bytes = serde_json::to_vec_pretty(&spec).map_err(std::io::Error::other)?;
-            if !create_only(&dir.join("job.json"), &bytes)? {
-                return Err(std::io::Error::other("job id collision"));
-            }
-            Ok(())
-        };
-        write().map_err(|e| ApiError::Internal(format!("writing job {}: {e}", spec.job_id)))?;
+        let bytes = serde_json::to_vec_pretty(&spec).expect("a job spec serialises");
+        match self.store.create(&job_key(&spec.job_id, "job.json"), bytes) {
+            Ok(true) => {}
+            Ok(false) => return Err(ApiError::Internal(format!("job id collision: {}", spec.job_id))),
+            Err(e) => return Err(ApiError::Internal(format!("writing job {}: {e}", spec.job_id))),
+        }
         let id = spec.job_id.clone();
         let first = first_event(&spec);
-        inner
-            .jobs
-            .insert(id.clone(), Memo { spec, last: first, cancel: Default::default(), cancel_reason: String::new() });
+        let owned = self.config.runs_jobs;
+        let memo = Memo { spec, last: first, owned, cancel: Default::default(), cancel_reason: String::new() };
+        inner.jobs.insert(id.clone(), memo);
         drop(inner);
-        self.append(&id, JobState::Queued, |e| e.message = "queued".into())
+        let message = if owned { "queued" } else { "queued; the adaptation worker runs it" };
+        self.append(&id, JobState::Queued, |e| e.message = message.into())
             .map_err(|e| ApiError::Internal(format!("{e:#}")))?;
         let mut inner = self.lock();
-        inner.queue.push_back(id.clone());
-        self.wake.notify_all();
+        if owned {
+            inner.queue.push_back(id.clone());
+            self.wake.notify_all();
+        }
         tracing::info!(job = %id, %category, "adaptation job queued");
         Ok(view(&inner.jobs[&id]))
     }
@@ -436,10 +521,11 @@ impl Jobs {
             event.eta_seconds = 0.0;
         }
         edit(&mut event);
-        let path = self.job_dir(id).join("events").join(format!("{:08}.json", event.seq));
+        let key = job_key(id, &format!("events/{:08}.json", event.seq));
         let bytes = serde_json::to_vec_pretty(&event)?;
-        if !create_only(&path, &bytes).with_context(|| format!("writing {}", path.display()))? {
-            bail!("job {id}: event {} exists: another worker owns this job", event.seq);
+        if !self.store.create(&key, bytes)? {
+            memo.owned = false;
+            bail!("job {id}: event {} exists: another worker owns this job; standing by", event.seq);
         }
         memo.last = event.clone();
         drop(inner);
@@ -449,6 +535,7 @@ impl Jobs {
     }
 
     pub fn get(&self, id: &str) -> Result<JobView, ApiError> {
+        self.discover(id);
         let inner = self.lock();
         inner.jobs.get(id).map(view).ok_or_else(|| ApiError::NotFound(format!("no job {id:?}")))
     }
@@ -462,11 +549,30 @@ impl Jobs {
         out
     }
 
+    /// Reads the store once when `id` is not known yet (created on another replica since the
+    /// last poll).
+    fn discover(&self, id: &str) {
+        if !self.lock().jobs.contains_key(id)
+            && let Err(e) = self.sync(false)
+        {
+            tracing::warn!("reading jobs from the store: {e:#}");
+        }
+    }
+
     pub fn cancel(&self, id: &str, reason: &str) -> Result<JobView, ApiError> {
+        self.discover(id);
         let mut inner = self.lock();
         let memo = inner.jobs.get(id).ok_or_else(|| ApiError::NotFound(format!("no job {id:?}")))?;
         if memo.last.state.terminal() {
             return Ok(view(memo));
+        }
+        if !memo.owned {
+            // Another process runs it: ask through the store (its poller acts on it).
+            drop(inner);
+            self.store
+                .create(&job_key(id, "cancel.json"), reason.as_bytes().to_vec())
+                .map_err(|e| ApiError::Internal(format!("asking job {id} to cancel: {e}")))?;
+            return self.get(id);
         }
         let why = if reason.is_empty() { "cancelled".to_string() } else { format!("cancelled: {reason}") };
         let memo = inner.jobs.get_mut(id).expect("present above");
@@ -495,8 +601,7 @@ impl Jobs {
     /// The job's persisted events after `after_seq`.
     pub fn events(&self, id: &str, after_seq: u64) -> Result<Vec<JobEvent>, ApiError> {
         self.get(id)?;
-        let events = read_events(&self.job_dir(id)).map_err(|e| ApiError::Internal(format!("{e:#}")))?;
-        Ok(events.into_iter().filter(|e| e.seq > after_seq).collect())
+        read_events(&self.store, id, after_seq).map_err(|e| ApiError::Internal(format!("{e:#}")))
     }
 
     /// The job's images leave the buffer; the category may start its next job.
@@ -516,11 +621,13 @@ impl Jobs {
     }
 
     fn run_one(&self, id: &str) {
-        let Some((spec, cancel)) = self.lock().jobs.get(id).map(|m| (m.spec.clone(), m.cancel.clone())) else {
+        let Some((spec, cancel, state)) =
+            self.lock().jobs.get(id).map(|m| (m.spec.clone(), m.cancel.clone(), m.last.state))
+        else {
             return;
         };
-        if cancel.load(Ordering::Acquire) {
-            return; // cancelled while queued: already recorded
+        if cancel.load(Ordering::Acquire) || state.terminal() {
+            return; // cancelled while queued (already recorded), or ended elsewhere
         }
         let ended = match self.execute(&spec, &cancel) {
             Ok(()) => return self.finish(&spec),
@@ -558,12 +665,16 @@ impl Jobs {
             e.message = format!("adapting {} on {} images", spec.source_version, spec.train.len());
             e.max_rounds = max_rounds;
         })?;
-        let source_dir = self.store.version_dir(&spec.category, &spec.source_version);
+        let source_dir = self.store.version_dir(&spec.category, &spec.source_version)?;
         let source = checkpoint::load(&source_dir, self.config.device)
             .with_context(|| format!("loading {}", source_dir.display()))?;
         let crop = source.manifest.crop;
-        let candidate_dir = self.store.version_dir(&spec.category, &spec.version);
-        if candidate_dir.join(MANIFEST).is_file() {
+        let saved = match self.store.manifest(&spec.category, &spec.version) {
+            Ok(_) => true,
+            Err(StoreError::UnknownVersion { .. }) => false,
+            Err(e) => return Err(e.into()),
+        };
+        if saved {
             tracing::info!(job = %id, "version {} was saved before a restart; validating it", spec.version);
         } else {
             let train = self.images(&spec.category, &spec.train, crop)?;
@@ -616,6 +727,7 @@ impl Jobs {
             e.version = spec.version.clone();
         })?;
 
+        let candidate_dir = self.store.version_dir(&spec.category, &spec.version)?;
         let candidate = checkpoint::load(&candidate_dir, self.config.device)
             .with_context(|| format!("loading {}", candidate_dir.display()))?;
         let held_out = self.images(&spec.category, &spec.held_out, crop)?;
@@ -625,23 +737,23 @@ impl Jobs {
         let before = gate::measure(&source, &held_out, &self.config.gate, &mut check)?;
         let after = gate::measure(&candidate, &held_out, &self.config.gate, &mut check)?;
         let decision = gate::decide(&before, &after, &self.config.gate)?;
-        if !decision.passed {
+        if !decision.passed && self.config.enforce_gate {
             self.append(id, JobState::Rejected, |e| {
                 e.message = format!("the gate kept {} inactive: {}", spec.version, decision.reason());
                 e.gate = decision.criteria.clone();
             })?;
             return Ok(());
         }
-        let reason = format!("job {id}: passed the validation gate");
+        let reason = if decision.passed {
+            format!("job {id}: passed the validation gate")
+        } else {
+            format!("job {id}: activated by --gate advisory although the gate failed: {}", decision.reason())
+        };
         let actor = format!("job:{id}");
-        match self.store.activate_for_job(
-            &spec.category,
-            &spec.version,
-            &actor,
-            &reason,
-            Some(spec.source_generation),
-            Some(id),
-        ) {
+        failpoint("before-activate");
+        let activated =
+            self.store.activate(&spec.category, &spec.version, &actor, &reason, Some(spec.source_generation), Some(id));
+        match activated {
             Ok(generation) => {
                 self.registry.refresh();
                 self.append(id, JobState::Activated, |e| {
@@ -650,6 +762,7 @@ impl Jobs {
                 })?;
             }
             Err(StoreError::Conflict { found, .. }) => {
+                tracing::warn!(job = %id, "activation conflict: generation {found} is active, the job started from {}", spec.source_generation);
                 self.append(id, JobState::Superseded, |e| {
                     e.message = format!(
                         "passed the gate, but generation {found} was activated since the job started from {}",
@@ -736,33 +849,25 @@ fn view(m: &Memo) -> JobView {
     }
 }
 
-/// A job directory's spec and events; `None` when it has no spec (a crash before it was written).
-fn read_job(dir: &Path) -> Result<Option<(JobSpec, Vec<JobEvent>)>> {
-    let spec_path = dir.join("job.json");
-    if !spec_path.is_file() {
-        return Ok(None);
-    }
-    let spec: JobSpec = serde_json::from_str(&fs::read_to_string(&spec_path)?)
-        .with_context(|| format!("parsing {}", spec_path.display()))?;
-    Ok(Some((spec, read_events(dir)?)))
+fn job_key(id: &str, rest: &str) -> String {
+    format!("jobs/{id}/{rest}")
 }
 
-fn read_events(dir: &Path) -> Result<Vec<JobEvent>> {
-    let events_dir = dir.join("events");
-    let mut paths: Vec<PathBuf> = match fs::read_dir(&events_dir) {
-        Ok(entries) => entries
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|x| x == "json"))
-            .collect(),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-        Err(e) => return Err(e.into()),
-    };
-    paths.sort();
-    paths
-        .iter()
-        .map(|p| {
-            let text = fs::read_to_string(p)?;
-            serde_json::from_str(&text).with_context(|| format!("parsing {}", p.display()))
-        })
-        .collect()
+/// A job's spec and events; `None` when it has no spec (a crash before it was written).
+fn read_job(store: &Store, id: &str) -> Result<Option<(JobSpec, Vec<JobEvent>)>> {
+    let Some(spec) = store.read_json::<JobSpec>(&job_key(id, "job.json"))? else { return Ok(None) };
+    Ok(Some((spec, read_events(store, id, 0)?)))
+}
+
+/// The job's events after `after_seq`, in order.
+fn read_events(store: &Store, id: &str, after_seq: u64) -> Result<Vec<JobEvent>> {
+    let mut out = Vec::new();
+    for name in store.list(&job_key(id, "events"))?.files {
+        let Some(seq) = name.strip_suffix(".json").and_then(|n| n.parse::<u64>().ok()) else { continue };
+        if seq > after_seq {
+            let key = job_key(id, &format!("events/{name}"));
+            out.push(store.read_json::<JobEvent>(&key)?.with_context(|| format!("{key} vanished"))?);
+        }
+    }
+    Ok(out)
 }

@@ -37,7 +37,7 @@ use crate::{
     metrics::Metrics,
     registry::Registry,
     service::{Limits, Service},
-    store::Store,
+    store::{S3Options, Store},
     tls::{Listener, TlsFiles, TlsListener},
     worker::WorkerConfig,
 };
@@ -55,9 +55,33 @@ struct Args {
     /// Seed models: one `<category>/manifest.json` per model, imported read-only into the store.
     #[arg(long, value_name = "DIR", default_value = "models")]
     models: PathBuf,
-    /// The service's state (model versions and activation log); created if missing.
-    #[arg(long, value_name = "DIR", default_value = "state")]
-    store: PathBuf,
+    /// The service's state (model versions, activation log, target buffer, jobs): a directory
+    /// (`file:///path` or a path; created if missing) or `s3://bucket/prefix`.
+    #[arg(long, value_name = "URL", default_value = "state")]
+    store: String,
+    /// S3-compatible endpoint (MinIO, Ceph, ...); credentials come from AWS_ACCESS_KEY_ID and
+    /// AWS_SECRET_ACCESS_KEY.
+    #[arg(long, env = "UDAPOSE_S3_ENDPOINT", value_name = "URL")]
+    s3_endpoint: Option<String>,
+    /// S3 region (default: AWS_REGION, else us-east-1).
+    #[arg(long, env = "AWS_REGION")]
+    s3_region: Option<String>,
+    /// Allow a plain-HTTP S3 endpoint (a store on loopback or inside a cluster).
+    #[arg(long)]
+    s3_allow_http: bool,
+    /// Where versions from a remote store are downloaded to be loaded (default: the system's
+    /// temporary directory).
+    #[arg(long, value_name = "DIR")]
+    cache_dir: Option<PathBuf>,
+    /// `all`: one process does everything; `serve`: answers estimates and accepts target
+    /// images, never runs adaptation jobs; `adapt`: runs the job queue (one per store).
+    #[arg(long, value_enum, default_value = "all")]
+    role: Role,
+    /// `enforce`: a job that fails the validation gate stays inactive; `advisory`: it is
+    /// activated anyway, with the gate's verdict in the activation log (for operators who
+    /// validate elsewhere).
+    #[arg(long, value_enum, default_value = "enforce")]
+    gate: GatePolicy,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
@@ -77,9 +101,10 @@ struct Args {
     /// Requests that may wait per category; beyond it: UNAVAILABLE / 503 at once.
     #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=100_000))]
     queue_depth: u32,
-    /// How often to re-read the activation log for versions activated elsewhere (0: never).
-    #[arg(long, default_value_t = 5)]
-    poll_store_secs: u64,
+    /// How often to re-read the store for versions activated, jobs run and images buffered by
+    /// other processes, in seconds (0: never; one process alone needs none).
+    #[arg(long, alias = "poll-store-secs", value_name = "SECS", default_value_t = 5)]
+    poll: u64,
     /// Deadline of a request that brings none, in milliseconds.
     #[arg(long, default_value_t = 30_000)]
     timeout_ms: u64,
@@ -112,6 +137,19 @@ struct Args {
     allow_unauthenticated: bool,
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Role {
+    All,
+    Serve,
+    Adapt,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum GatePolicy {
+    Enforce,
+    Advisory,
+}
+
 #[tokio::main]
 async fn main() -> Result<()> {
     init_tracing();
@@ -139,10 +177,27 @@ async fn main() -> Result<()> {
         queue_depth: args.queue_depth as usize,
         device: runtime.device(),
     };
-    let store = Store::open(&args.store).with_context(|| format!("opening the store {}", args.store.display()))?;
+    let s3 = S3Options {
+        endpoint: args.s3_endpoint.clone(),
+        region: args.s3_region.clone(),
+        allow_http: args.s3_allow_http,
+    };
+    let cache = args.cache_dir.clone().unwrap_or_else(std::env::temp_dir);
+    let store =
+        Store::open_url(&args.store, &s3, &cache).with_context(|| format!("opening the store {}", args.store))?;
+    match store.probe() {
+        Ok(()) => {
+            tracing::info!(store = %store, role = ?args.role, "store refuses a second create-only write: writers are fenced")
+        }
+        Err(e) if args.role == Role::Serve => {
+            tracing::warn!("{e}; serving anyway (a serve replica never activates on its own)")
+        }
+        Err(e) => bail!("{e}: refusing --role {:?}, whose jobs and activations rely on it", args.role),
+    }
     let registry = Arc::new(Registry::start(store.clone(), &args.models, &config, metrics.clone())?);
-    if args.poll_store_secs > 0 {
-        registry.poll(Duration::from_secs(args.poll_store_secs));
+    let poll = Duration::from_secs(args.poll);
+    if args.poll > 0 {
+        registry.poll(poll);
     }
     let limits = Limits {
         max_request_bytes: usize::try_from(args.max_request_bytes).context("--max-request-bytes")?,
@@ -152,13 +207,16 @@ async fn main() -> Result<()> {
     let jobs = Jobs::start(
         store.clone(),
         registry.clone(),
-        Buffer::new(store.root(), args.buffer_capacity as usize),
+        Buffer::new(store.clone(), args.buffer_capacity as usize),
         JobsConfig {
             min_images: args.adapt_min_images as usize,
             adapt: AdaptConfig::default(),
             gate: GateConfig::default(),
             device: runtime.device(),
             decode: limits.decode,
+            runs_jobs: args.role != Role::Serve,
+            enforce_gate: args.gate == GatePolicy::Enforce,
+            poll,
         },
     )
     .context("starting the adaptation jobs")?;

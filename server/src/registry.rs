@@ -117,7 +117,7 @@ impl Category {
 fn read_active(store: &Store, category: &str) -> Result<Option<ActiveVersion>, StoreError> {
     let Some((generation, head)) = store.head(category)? else { return Ok(None) };
     let manifest = store.manifest(category, &head.version)?;
-    let dir = store.version_dir(category, &head.version);
+    let dir = store.version_dir(category, &head.version)?;
     Ok(Some(ActiveVersion { version: head.version, generation, dir, manifest }))
 }
 
@@ -146,9 +146,6 @@ impl Registry {
             }
         }
         let mut names = store.categories().context("listing the store's categories")?;
-        for name in &names {
-            store.remove_debris(name);
-        }
         for failed in seed_errors.keys() {
             if !names.contains(failed) {
                 names.push(failed.clone());

@@ -233,7 +233,7 @@ impl Service {
         let actor = actor.to_owned();
         let view = blocking(move || {
             let generation = match version {
-                Some(v) => store.activate(&name, &v, &actor, &reason, expected_generation)?,
+                Some(v) => store.activate(&name, &v, &actor, &reason, expected_generation, None)?,
                 None => store.rollback(&name, &actor, &reason, expected_generation)?,
             };
             let (generation, activation) = store

@@ -1,23 +1,37 @@
-//! The model store on disk (ARCHITECTURE.md "State"): immutable version directories and an
-//! append-only activation log per category, every write create-only.
+//! The store (ARCHITECTURE.md "State"): everything the service writes, behind the
+//! `object_store` crate, so one process on a local directory and a fleet on S3 share one design.
 //!
 //! ```text
-//! <root>/models/<category>/versions/<version-id>/        manifest.json + weights, never rewritten
-//! <root>/models/<category>/activations/<generation:020>.json   {version, previous, actor, reason, time}
+//! models/<category>/versions/<version-id>/            weights + manifest.json (uploaded last)
+//! models/<category>/activations/<generation:020>.json {version, previous, actor, reason, time, job_id?}
+//! buffers/<category>/<sha256>.img, .json              target images (buffer.rs)
+//! jobs/<job-id>/job.json, events/<seq:08>.json        adaptation jobs (jobs.rs)
 //! ```
 //!
-//! The highest generation is the active version. Activating writes generation + 1 with a
-//! create-only write (hard link of a synced temporary file), so two writers cannot both win.
-//! The repository's `models/<category>/` directories are read-only seeds, imported as
-//! `seed-<sha256(manifest)[:12]>`.
+//! Every write is create-only (`PutMode::Create`: a hard link on the local backend, with fsync;
+//! `If-None-Match: *` on S3), nothing is rewritten in place, and a conditional write is the only
+//! coordination between processes. The highest generation is the active version: activating
+//! writes generation + 1, so of two writers racing for it exactly one wins. A version is
+//! complete once its manifest (with the sha256 of every file) exists; anything else under
+//! `versions/` is debris of a crash and is never served. The repository's `models/<category>/`
+//! directories are read-only seeds, imported as `seed-<sha256(manifest)[:12]>`.
+//!
+//! The API is blocking (callers are worker threads, the job runner and `spawn_blocking`
+//! closures); I/O runs on a small runtime of the store's own, so S3 calls never compete with
+//! request handling.
 
 use std::{
-    fs::{self, File},
-    io::{self, Write},
+    fs,
+    future::Future,
     path::{Path, PathBuf},
+    sync::Arc,
     time::{SystemTime, UNIX_EPOCH},
 };
 
+use object_store::{
+    ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, aws::AmazonS3Builder, local::LocalFileSystem,
+    path::Path as Key, prefix::PrefixStore,
+};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use udapose_engine::checkpoint::{MANIFEST, Manifest};
@@ -27,14 +41,24 @@ pub const SEED_ACTOR: &str = "seed";
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
+    #[error("{key}: {source}")]
+    Object {
+        key: String,
+        #[source]
+        source: object_store::Error,
+    },
     #[error("{path}: {source}")]
     Io {
         path: String,
         #[source]
-        source: io::Error,
+        source: std::io::Error,
     },
     #[error("{path}: {reason}")]
     Corrupt { path: String, reason: String },
+    #[error("invalid store {url:?}: {reason}")]
+    Url { url: String, reason: String },
+    #[error("the store {0} does not refuse a second create-only write of one object: it cannot coordinate writers")]
+    NotCreateOnly(String),
     #[error("category {category}: version {version} does not exist")]
     UnknownVersion { category: String, version: String },
     #[error("category {category}: generation {found} is active, expected {expected}")]
@@ -45,8 +69,12 @@ pub enum StoreError {
 
 type Result<T> = std::result::Result<T, StoreError>;
 
-fn io_err(path: &Path) -> impl FnOnce(io::Error) -> StoreError + '_ {
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
     move |source| StoreError::Io { path: path.display().to_string(), source }
+}
+
+fn corrupt(path: impl Into<String>, reason: impl ToString) -> StoreError {
+    StoreError::Corrupt { path: path.into(), reason: reason.to_string() }
 }
 
 /// One entry of a category's activation log.
@@ -64,7 +92,7 @@ pub struct Activation {
 }
 
 /// Whether `name` may be a category: 1-64 of `[a-z0-9_-]`, starting with a letter or digit.
-/// Anything else (`..`, `/`, upper case, empty) is refused before it touches a path.
+/// Anything else (`..`, `/`, upper case, empty) is refused before it becomes a key.
 pub fn valid_category(name: &str) -> bool {
     let b = name.as_bytes();
     (1..=64).contains(&b.len())
@@ -72,49 +100,217 @@ pub fn valid_category(name: &str) -> bool {
         && b.iter().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || *c == b'_' || *c == b'-')
 }
 
-/// A local-directory store.
-#[derive(Debug, Clone)]
+/// How to reach an S3-compatible store; credentials come from the standard AWS environment.
+#[derive(Clone, Debug, Default)]
+pub struct S3Options {
+    pub endpoint: Option<String>,
+    pub region: Option<String>,
+    pub allow_http: bool,
+}
+
+/// The objects directly under a prefix.
+#[derive(Debug, Default)]
+pub struct Listing {
+    pub files: Vec<String>,
+    pub dirs: Vec<String>,
+}
+
+/// A store: a local directory (`file:///path` or a plain path) or `s3://bucket/prefix`.
+#[derive(Clone)]
 pub struct Store {
-    root: PathBuf,
+    shared: Arc<Shared>,
+}
+
+struct Shared {
+    objects: Arc<dyn ObjectStore>,
+    runtime: Option<tokio::runtime::Runtime>,
+    /// The directory of a local store: versions are loaded from it in place.
+    local: Option<PathBuf>,
+    /// Where versions of a remote store are downloaded to be loaded.
+    cache: PathBuf,
+    url: String,
+}
+
+impl Drop for Shared {
+    fn drop(&mut self) {
+        // Dropping a runtime blocks, which tokio forbids inside async code (the server's end).
+        if let Some(rt) = self.runtime.take() {
+            rt.shutdown_background();
+        }
+    }
+}
+
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store").field("url", &self.shared.url).finish()
+    }
+}
+
+impl std::fmt::Display for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.shared.url)
+    }
 }
 
 impl Store {
-    /// Opens (creating) the store at `root`.
+    /// A local directory store (created if missing).
+    #[cfg(test)]
     pub fn open(root: &Path) -> Result<Self> {
-        let models = root.join("models");
-        fs::create_dir_all(&models).map_err(io_err(&models))?;
-        Ok(Store { root: root.to_path_buf() })
+        Self::open_url(&root.display().to_string(), &S3Options::default(), &std::env::temp_dir())
     }
 
-    pub fn root(&self) -> &Path {
-        &self.root
+    /// Opens `url`; `cache` holds versions downloaded from a remote store.
+    pub fn open_url(url: &str, s3: &S3Options, cache: &Path) -> Result<Self> {
+        let bad = |reason: &dyn ToString| StoreError::Url { url: url.into(), reason: reason.to_string() };
+        let (objects, local): (Arc<dyn ObjectStore>, _) = if let Some(rest) = url.strip_prefix("s3://") {
+            let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+            if bucket.is_empty() {
+                return Err(bad(&"no bucket: use s3://bucket/prefix"));
+            }
+            // reqwest is built without a default TLS provider: the service's is ring.
+            let _ = rustls::crypto::ring::default_provider().install_default();
+            let mut builder = AmazonS3Builder::from_env().with_bucket_name(bucket).with_allow_http(s3.allow_http);
+            if let Some(endpoint) = &s3.endpoint {
+                builder = builder.with_endpoint(endpoint);
+            }
+            if let Some(region) = &s3.region {
+                builder = builder.with_region(region);
+            }
+            let s3 = builder.build().map_err(|e| bad(&e))?;
+            let store: Arc<dyn ObjectStore> = match prefix.trim_matches('/') {
+                "" => Arc::new(s3),
+                p => Arc::new(PrefixStore::new(s3, p)),
+            };
+            (store, None)
+        } else {
+            let root = PathBuf::from(url.strip_prefix("file://").unwrap_or(url));
+            if url.contains("://") && !url.starts_with("file://") {
+                return Err(bad(&"unknown scheme: use file:///path, a path, or s3://bucket/prefix"));
+            }
+            fs::create_dir_all(&root).map_err(io_err(&root))?;
+            let root = root.canonicalize().map_err(io_err(&root))?;
+            let fs = LocalFileSystem::new_with_prefix(&root).map_err(|e| bad(&e))?.with_fsync(true);
+            (Arc::new(fs) as Arc<dyn ObjectStore>, Some(root))
+        };
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .thread_name("store-io")
+            .enable_all()
+            .build()
+            .map_err(io_err(Path::new("tokio runtime")))?;
+        let cache = cache.join("udapose-versions");
+        Ok(Store { shared: Arc::new(Shared { objects, runtime: Some(runtime), local, cache, url: url.into() }) })
     }
 
-    fn category_dir(&self, category: &str) -> PathBuf {
-        self.root.join("models").join(category)
+    /// Runs `f` on the store's runtime, from any thread (inside async code too).
+    fn block<F: Future<Output: Send> + Send>(&self, f: F) -> F::Output {
+        let rt = self.shared.runtime.as_ref().expect("the runtime lives as long as the store");
+        match tokio::runtime::Handle::try_current() {
+            Ok(h) if h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread => {
+                tokio::task::block_in_place(|| rt.block_on(f))
+            }
+            Ok(_) => std::thread::scope(|s| s.spawn(|| rt.block_on(f)).join().expect("store I/O panicked")),
+            Err(_) => rt.block_on(f),
+        }
     }
 
-    pub fn version_dir(&self, category: &str, version: &str) -> PathBuf {
-        self.category_dir(category).join("versions").join(version)
+    fn object_err(key: &Key) -> impl FnOnce(object_store::Error) -> StoreError + '_ {
+        move |source| StoreError::Object { key: key.to_string(), source }
     }
 
-    fn activations_dir(&self, category: &str) -> PathBuf {
-        self.category_dir(category).join("activations")
+    /// Writes `key` only if it does not exist; false when it did (another writer won).
+    pub fn create(&self, key: &str, bytes: Vec<u8>) -> Result<bool> {
+        let key = Key::from(key);
+        let opts = PutOptions { mode: PutMode::Create, ..Default::default() };
+        match self.block(self.shared.objects.put_opts(&key, PutPayload::from(bytes), opts)) {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::AlreadyExists { .. }) => Ok(false),
+            Err(e) => Err(Self::object_err(&key)(e)),
+        }
+    }
+
+    /// The object's bytes; `None` when it does not exist.
+    pub fn read(&self, key: &str) -> Result<Option<Vec<u8>>> {
+        let key = Key::from(key);
+        let got = self.block(async {
+            match self.shared.objects.get(&key).await {
+                Ok(r) => r.bytes().await.map(Some),
+                Err(object_store::Error::NotFound { .. }) => Ok(None),
+                Err(e) => Err(e),
+            }
+        });
+        got.map(|b| b.map(|b| b.to_vec())).map_err(Self::object_err(&key))
+    }
+
+    pub fn exists(&self, key: &str) -> Result<bool> {
+        let key = Key::from(key);
+        match self.block(self.shared.objects.head(&key)) {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::NotFound { .. }) => Ok(false),
+            Err(e) => Err(Self::object_err(&key)(e)),
+        }
+    }
+
+    /// A JSON object; `None` when it does not exist.
+    pub fn read_json<T: serde::de::DeserializeOwned>(&self, key: &str) -> Result<Option<T>> {
+        let Some(bytes) = self.read(key)? else { return Ok(None) };
+        serde_json::from_slice(&bytes).map(Some).map_err(|e| corrupt(key, e))
+    }
+
+    /// The names directly under `prefix` (a "directory"): objects and sub-prefixes.
+    pub fn list(&self, prefix: &str) -> Result<Listing> {
+        let key = Key::from(prefix);
+        let listed = self.block(self.shared.objects.list_with_delimiter(Some(&key)));
+        let listed = match listed {
+            Ok(l) => l,
+            Err(object_store::Error::NotFound { .. }) => return Ok(Listing::default()),
+            Err(e) => return Err(Self::object_err(&key)(e)),
+        };
+        let name = |p: &Key| p.filename().map(str::to_owned);
+        let mut out = Listing {
+            files: listed.objects.iter().filter_map(|o| name(&o.location)).collect(),
+            dirs: listed.common_prefixes.iter().filter_map(name).collect(),
+        };
+        out.files.sort();
+        out.dirs.sort();
+        Ok(out)
+    }
+
+    /// Deletes `key` (gone already is fine).
+    pub fn delete(&self, key: &str) -> Result<()> {
+        let key = Key::from(key);
+        match self.block(self.shared.objects.delete(&key)) {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(Self::object_err(&key)(e)),
+        }
+    }
+
+    /// Checks that the store refuses a second create-only write of one object: the only
+    /// coordination the service relies on (some S3-compatible servers ignore `If-None-Match`).
+    pub fn probe(&self) -> Result<()> {
+        let key = format!("probe/{}-{}.json", std::process::id(), nanos());
+        let first = self.create(&key, b"{}".to_vec())?;
+        let second = self.create(&key, b"{}".to_vec())?;
+        self.delete(&key)?;
+        if first && !second { Ok(()) } else { Err(StoreError::NotCreateOnly(self.shared.url.clone())) }
+    }
+
+    fn versions_key(category: &str) -> String {
+        format!("models/{category}/versions")
+    }
+
+    fn activation_key(category: &str, generation: u64) -> String {
+        format!("models/{category}/activations/{generation:020}.json")
     }
 
     /// Categories with an activation log, sorted.
     pub fn categories(&self) -> Result<Vec<String>> {
-        let dir = self.root.join("models");
         let mut out = Vec::new();
-        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let entry = entry.map_err(io_err(&dir))?;
-            if let Some(name) = entry.file_name().to_str().filter(|n| valid_category(n))
-                && entry.path().join("activations").is_dir()
-            {
-                out.push(name.to_owned());
+        for name in self.list("models")?.dirs.into_iter().filter(|n| valid_category(n)) {
+            if !self.generations(&name)?.is_empty() {
+                out.push(name);
             }
         }
-        out.sort();
         Ok(out)
     }
 
@@ -124,55 +320,49 @@ impl Store {
         Ok(Some((generation, self.activation(category, generation)?)))
     }
 
-    /// The generations in the log, ascending (file names, not contents).
+    /// The generations in the log, ascending (names, not contents).
     fn generations(&self, category: &str) -> Result<Vec<u64>> {
-        let dir = self.activations_dir(category);
-        if !dir.is_dir() {
-            return Ok(Vec::new());
-        }
-        let mut out = Vec::new();
-        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let name = entry.map_err(io_err(&dir))?.file_name();
-            out.extend(name.to_str().and_then(|n| n.strip_suffix(".json")).and_then(|n| n.parse::<u64>().ok()));
-        }
+        let files = self.list(&format!("models/{category}/activations"))?.files;
+        let mut out: Vec<u64> =
+            files.iter().filter_map(|n| n.strip_suffix(".json")).filter_map(|n| n.parse().ok()).collect();
         out.sort_unstable();
         Ok(out)
     }
 
     fn activation(&self, category: &str, generation: u64) -> Result<Activation> {
-        let path = self.activations_dir(category).join(activation_name(generation));
-        let text = fs::read_to_string(&path).map_err(io_err(&path))?;
-        serde_json::from_str(&text)
-            .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })
+        let key = Self::activation_key(category, generation);
+        self.read_json(&key)?.ok_or_else(|| corrupt(key, "listed but missing"))
     }
 
-    /// The manifest of a complete version (its manifest is written last; a directory without
-    /// one is debris from a crash and does not count).
+    /// The activation log, newest first.
+    pub fn activations(&self, category: &str) -> Result<Vec<(u64, Activation)>> {
+        let generations = self.generations(category)?;
+        generations.into_iter().rev().map(|g| Ok((g, self.activation(category, g)?))).collect()
+    }
+
+    /// The manifest of a complete version.
     pub fn manifest(&self, category: &str, version: &str) -> Result<Manifest> {
-        let path = self.version_dir(category, version).join(MANIFEST);
-        if !path.is_file() {
-            return Err(StoreError::UnknownVersion { category: category.into(), version: version.into() });
+        let key = format!("{}/{version}/{MANIFEST}", Self::versions_key(category));
+        self.read_json(&key)?
+            .ok_or_else(|| StoreError::UnknownVersion { category: category.into(), version: version.into() })
+    }
+
+    /// The complete versions of a category (manifest present), sorted by id.
+    pub fn versions(&self, category: &str) -> Result<Vec<String>> {
+        let prefix = Self::versions_key(category);
+        let mut out = Vec::new();
+        for v in self.list(&prefix)?.dirs.into_iter().filter(|v| !v.starts_with('.')) {
+            if self.exists(&format!("{prefix}/{v}/{MANIFEST}"))? {
+                out.push(v);
+            }
         }
-        let text = fs::read_to_string(&path).map_err(io_err(&path))?;
-        serde_json::from_str(&text)
-            .map_err(|e| StoreError::Corrupt { path: path.display().to_string(), reason: e.to_string() })
+        Ok(out)
     }
 
-    /// Activates `version` as the next generation. With `expected_generation`, fails with
-    /// `Conflict` unless that generation is the active one; a lost race is a `Conflict` too.
+    /// Activates `version` as the next generation, for `job_id` when a job's gate passed. With
+    /// `expected_generation`, fails with `Conflict` unless that generation is the active one;
+    /// a lost race is a `Conflict` too.
     pub fn activate(
-        &self,
-        category: &str,
-        version: &str,
-        actor: &str,
-        reason: &str,
-        expected_generation: Option<u64>,
-    ) -> Result<u64> {
-        self.activate_for_job(category, version, actor, reason, expected_generation, None)
-    }
-
-    /// [`Store::activate`], recording the adaptation job whose gate passed.
-    pub fn activate_for_job(
         &self,
         category: &str,
         version: &str,
@@ -198,11 +388,8 @@ impl Store {
             time: SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()),
             job_id: job_id.map(str::to_owned),
         };
-        let dir = self.activations_dir(category);
-        fs::create_dir_all(&dir).map_err(io_err(&dir))?;
         let bytes = serde_json::to_vec_pretty(&activation).expect("an activation serialises");
-        let path = dir.join(activation_name(generation));
-        if create_only(&path, &bytes).map_err(io_err(&path))? {
+        if self.create(&Self::activation_key(category, generation), bytes)? {
             Ok(generation)
         } else {
             let found = self.head(category)?.map_or(0, |(g, _)| g);
@@ -210,78 +397,106 @@ impl Store {
         }
     }
 
-    /// The activation log, newest first.
-    pub fn activations(&self, category: &str) -> Result<Vec<(u64, Activation)>> {
-        let generations = self.generations(category)?;
-        generations.into_iter().rev().map(|g| Ok((g, self.activation(category, g)?))).collect()
+    /// Re-activates the active entry's `previous` version.
+    pub fn rollback(&self, category: &str, actor: &str, reason: &str, expected_generation: Option<u64>) -> Result<u64> {
+        let (generation, head) = self.head(category)?.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
+        let previous = head.previous.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
+        self.activate(category, &previous, actor, reason, Some(expected_generation.unwrap_or(generation)), None)
     }
 
-    /// The complete versions of a category (manifest present), sorted by id.
-    pub fn versions(&self, category: &str) -> Result<Vec<String>> {
-        let dir = self.category_dir(category).join("versions");
-        if !dir.is_dir() {
-            return Ok(Vec::new());
+    /// A local directory holding the complete version, to load it from: the version itself in
+    /// a local store; a verified download (files checked against the manifest's sha256, the
+    /// manifest written last, then renamed into place) from a remote one.
+    pub fn version_dir(&self, category: &str, version: &str) -> Result<PathBuf> {
+        if let Some(root) = &self.shared.local {
+            return Ok(root.join(Self::versions_key(category)).join(version));
         }
-        let mut out = Vec::new();
-        for entry in fs::read_dir(&dir).map_err(io_err(&dir))? {
-            let entry = entry.map_err(io_err(&dir))?;
-            if let Some(name) = entry.file_name().to_str().filter(|n| !n.starts_with('.'))
-                && entry.path().join(MANIFEST).is_file()
-            {
-                out.push(name.to_owned());
+        let dir = self.shared.cache.join(category).join(version);
+        if dir.join(MANIFEST).is_file() {
+            return Ok(dir);
+        }
+        let prefix = format!("{}/{version}", Self::versions_key(category));
+        let manifest_key = format!("{prefix}/{MANIFEST}");
+        let manifest_bytes = self
+            .read(&manifest_key)?
+            .ok_or_else(|| StoreError::UnknownVersion { category: category.into(), version: version.into() })?;
+        let manifest: Manifest = serde_json::from_slice(&manifest_bytes).map_err(|e| corrupt(&manifest_key, e))?;
+        let tmp = temp_sibling(&dir);
+        fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
+        let result = (|| {
+            for (file, sha) in &manifest.files {
+                let key = format!("{prefix}/{file}");
+                if file.contains('/') || file.starts_with('.') {
+                    return Err(corrupt(&key, "not a plain file name"));
+                }
+                let bytes = self.read(&key)?.ok_or_else(|| corrupt(&key, "listed in the manifest but missing"))?;
+                if &sha256_hex(&bytes) != sha {
+                    return Err(corrupt(&key, "does not match its sha256 in the manifest"));
+                }
+                fs::write(tmp.join(file), bytes).map_err(io_err(&tmp))?;
             }
-        }
-        out.sort();
-        Ok(out)
+            fs::write(tmp.join(MANIFEST), &manifest_bytes).map_err(io_err(&tmp))?;
+            match fs::rename(&tmp, &dir) {
+                Ok(()) => Ok(()),
+                Err(_) if dir.join(MANIFEST).is_file() => Ok(()), // another thread got it first
+                Err(e) => Err(io_err(&dir)(e)),
+            }
+        })();
+        let _ = fs::remove_dir_all(&tmp);
+        result.map(|()| dir)
     }
 
-    /// Writes a new version: `write` fills a temporary directory (the manifest last), which is
-    /// synced and renamed into place, so the version appears complete or not at all. A crash
-    /// leaves a dot-named temporary directory that nothing reads ([`Store::remove_debris`]).
+    /// Writes a new version: `write` fills a local temporary directory, whose files are
+    /// uploaded create-only, the manifest last, so the version appears complete or not at all.
+    /// The version id belongs to its writer (a job): leftovers of its own crashed attempt are
+    /// deleted first.
     pub fn put_version(
         &self,
         category: &str,
         version: &str,
         write: impl FnOnce(&Path) -> std::result::Result<(), String>,
-    ) -> Result<PathBuf> {
-        let target = self.version_dir(category, version);
-        let parent = target.parent().expect("a version directory has a parent").to_path_buf();
-        fs::create_dir_all(&parent).map_err(io_err(&parent))?;
-        let tmp = parent.join(format!(".{version}.{}.{}.tmp", std::process::id(), nanos()));
-        let result = (|| {
-            write(&tmp).map_err(|reason| StoreError::Corrupt { path: tmp.display().to_string(), reason })?;
-            failpoint("save-version");
-            for entry in fs::read_dir(&tmp).map_err(io_err(&tmp))? {
-                let path = entry.map_err(io_err(&tmp))?.path();
-                File::open(&path).and_then(|f| f.sync_all()).map_err(io_err(&path))?;
-            }
-            File::open(&tmp).and_then(|f| f.sync_all()).map_err(io_err(&tmp))?;
-            fs::rename(&tmp, &target).map_err(io_err(&target))?;
-            File::open(&parent).and_then(|f| f.sync_all()).map_err(io_err(&parent))
-        })();
-        if result.is_err() {
-            let _ = fs::remove_dir_all(&tmp);
+    ) -> Result<()> {
+        let prefix = format!("{}/{version}", Self::versions_key(category));
+        if self.exists(&format!("{prefix}/{MANIFEST}"))? {
+            return Err(corrupt(&prefix, "the version exists already"));
         }
-        result.map(|()| target)
+        for file in self.list(&prefix)?.files {
+            tracing::info!("removing debris {prefix}/{file}");
+            self.delete(&format!("{prefix}/{file}"))?;
+        }
+        // `write` creates the directory itself (a model directory must not exist yet).
+        let tmp = temp_sibling(&self.shared.cache.join(category).join(version));
+        let parent = tmp.parent().expect("a temporary directory has a parent");
+        fs::create_dir_all(parent).map_err(io_err(parent))?;
+        let result = write(&tmp)
+            .map_err(|reason| corrupt(tmp.display().to_string(), reason))
+            .and_then(|()| self.upload_dir(&prefix, &tmp, Some("save-version")));
+        let _ = fs::remove_dir_all(&tmp);
+        result
     }
 
-    /// Removes the temporary directories a crash left behind in `category`'s versions.
-    pub fn remove_debris(&self, category: &str) {
-        let dir = self.category_dir(category).join("versions");
-        for entry in fs::read_dir(&dir).into_iter().flatten().flatten() {
-            let name = entry.file_name();
-            if name.to_str().is_some_and(|n| n.starts_with('.') && n.ends_with(".tmp")) {
-                tracing::info!("removing debris {}", entry.path().display());
-                let _ = fs::remove_dir_all(entry.path());
+    /// Uploads a model directory's files under `prefix`, the manifest last (an object that
+    /// exists already is kept: its name is its content's). `failpoint` fires before the manifest.
+    fn upload_dir(&self, prefix: &str, dir: &Path, failpoint_name: Option<&str>) -> Result<()> {
+        let mut files: Vec<PathBuf> = fs::read_dir(dir)
+            .map_err(io_err(dir))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_file() && p.file_name().is_some_and(|n| n != MANIFEST))
+            .collect();
+        files.sort();
+        files.push(dir.join(MANIFEST));
+        for (i, path) in files.iter().enumerate() {
+            if i + 1 == files.len()
+                && let Some(name) = failpoint_name
+            {
+                failpoint(name);
             }
+            let name =
+                path.file_name().and_then(|n| n.to_str()).ok_or_else(|| corrupt(path.display().to_string(), "name"))?;
+            let bytes = fs::read(path).map_err(io_err(path))?;
+            self.create(&format!("{prefix}/{name}"), bytes)?;
         }
-    }
-
-    /// Re-activates the active entry's `previous` version.
-    pub fn rollback(&self, category: &str, actor: &str, reason: &str, expected_generation: Option<u64>) -> Result<u64> {
-        let (generation, head) = self.head(category)?.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
-        let previous = head.previous.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
-        self.activate(category, &previous, actor, reason, Some(expected_generation.unwrap_or(generation)))
+        Ok(())
     }
 
     /// Imports the seed model directory `seed` for `category` (once: its id is content-derived)
@@ -292,9 +507,9 @@ impl Store {
         let manifest = fs::read(&manifest_path).map_err(io_err(&manifest_path))?;
         let digest: String = Sha256::digest(&manifest).iter().take(6).map(|b| format!("{b:02x}")).collect();
         let version = format!("seed-{digest}");
-        let target = self.version_dir(category, &version);
-        if !target.join(MANIFEST).is_file() {
-            copy_version(seed, &target)?;
+        let prefix = format!("{}/{version}", Self::versions_key(category));
+        if !self.exists(&format!("{prefix}/{MANIFEST}"))? {
+            self.upload_dir(&prefix, seed, None)?;
         }
         let replace = match self.head(category)? {
             None => true,
@@ -302,7 +517,7 @@ impl Store {
         };
         if replace {
             let reason = format!("imported seed {}", seed.display());
-            match self.activate(category, &version, SEED_ACTOR, &reason, None) {
+            match self.activate(category, &version, SEED_ACTOR, &reason, None, None) {
                 Ok(_) | Err(StoreError::Conflict { .. }) => {} // another process imported it first
                 Err(e) => return Err(e),
             }
@@ -311,75 +526,30 @@ impl Store {
     }
 }
 
-fn activation_name(generation: u64) -> String {
-    format!("{generation:020}.json")
+/// A unique temporary sibling of `path`.
+fn temp_sibling(path: &Path) -> PathBuf {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("tmp");
+    path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()))
 }
 
-/// Copies the files of a model directory into `target` atomically: into a temporary sibling,
-/// every file synced, the manifest last, then renamed into place. Losing a race to another
-/// importer of the same (content-named) version is fine.
-fn copy_version(seed: &Path, target: &Path) -> Result<()> {
-    let parent = target.parent().expect("a version directory has a parent");
-    fs::create_dir_all(parent).map_err(io_err(parent))?;
-    let name = target.file_name().and_then(|n| n.to_str()).unwrap_or("version");
-    let tmp = parent.join(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()));
-    fs::create_dir(&tmp).map_err(io_err(&tmp))?;
-    let result = (|| {
-        let mut files: Vec<PathBuf> = fs::read_dir(seed)
-            .map_err(io_err(seed))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.is_file() && p.file_name().is_some_and(|n| n != MANIFEST))
-            .collect();
-        files.sort();
-        files.push(seed.join(MANIFEST));
-        for file in &files {
-            let to = tmp.join(file.file_name().expect("a file has a name"));
-            fs::copy(file, &to).map_err(io_err(file))?;
-            File::open(&to).and_then(|f| f.sync_all()).map_err(io_err(&to))?;
-        }
-        File::open(&tmp).and_then(|f| f.sync_all()).map_err(io_err(&tmp))?;
-        match fs::rename(&tmp, target) {
-            Ok(()) => File::open(parent).and_then(|f| f.sync_all()).map_err(io_err(parent)),
-            Err(_) if target.join(MANIFEST).is_file() => Ok(()),
-            Err(e) => Err(io_err(target)(e)),
-        }
-    })();
-    let _ = fs::remove_dir_all(&tmp);
-    result
-}
-
-/// Writes `bytes` to `path` only if `path` does not exist: a synced temporary file hard-linked
-/// into place (atomic and exclusive). Returns false when `path` already existed.
-pub(crate) fn create_only(path: &Path, bytes: &[u8]) -> io::Result<bool> {
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let tmp = path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()));
-    let result = (|| {
-        let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        match fs::hard_link(&tmp, path) {
-            Ok(()) => {
-                if let Some(parent) = path.parent() {
-                    File::open(parent)?.sync_all()?;
-                }
-                Ok(true)
-            }
-            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => Ok(false),
-            Err(e) => Err(e),
-        }
-    })();
-    let _ = fs::remove_file(&tmp);
-    result
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Crash-test hook: with `UDAPOSE_FAILPOINT=<name>` the process stops for good at the point of
-/// that name (logged), so a test can `kill -9` it exactly there.
+/// that name (logged), so a test can `kill -9` it exactly there; with `stop:<name>` it sends
+/// itself SIGSTOP there (a test resumes it with SIGCONT).
 pub(crate) fn failpoint(name: &str) {
-    if std::env::var("UDAPOSE_FAILPOINT").is_ok_and(|v| v == name) {
+    let Ok(set) = std::env::var("UDAPOSE_FAILPOINT") else { return };
+    if set == name {
         tracing::warn!("failpoint {name}: stopped here");
         loop {
             std::thread::sleep(std::time::Duration::from_secs(3600));
         }
+    }
+    if set.strip_prefix("stop:") == Some(name) {
+        tracing::warn!("failpoint {name}: SIGSTOP");
+        let _ = std::process::Command::new("kill").args(["-STOP", &std::process::id().to_string()]).status();
     }
 }
 
@@ -415,6 +585,7 @@ mod tests {
     fn a_seed_is_imported_once_and_activated_as_generation_zero() {
         let root = temp("seed");
         let store = Store::open(&root).unwrap();
+        store.probe().unwrap();
         let version = store.import_seed("car", &shipped()).unwrap();
         assert!(version.starts_with("seed-") && version.len() == 17, "{version}");
         assert_eq!(store.import_seed("car", &shipped()).unwrap(), version);
@@ -425,7 +596,9 @@ mod tests {
         );
         assert_eq!(store.manifest("car", &version).unwrap().crop, [128, 320]);
         assert_eq!(store.categories().unwrap(), ["car"]);
+        assert_eq!(store.versions("car").unwrap(), std::slice::from_ref(&version));
         assert!(root.join("models/car/activations/00000000000000000000.json").is_file());
+        assert!(store.version_dir("car", &version).unwrap().join(MANIFEST).is_file());
         fs::remove_dir_all(&root).unwrap();
     }
 
@@ -435,22 +608,48 @@ mod tests {
         let store = Store::open(&root).unwrap();
         let seed = store.import_seed("car", &shipped()).unwrap();
         // A second version (same files, another name) to switch between.
-        copy_version(&shipped(), &store.version_dir("car", "v2")).unwrap();
-        assert_eq!(store.activate("car", "v2", "test", "try", Some(0)).unwrap(), 1);
-        let err = store.activate("car", &seed, "test", "stale", Some(0)).unwrap_err();
+        store.upload_dir("models/car/versions/v2", &shipped(), None).unwrap();
+        assert_eq!(store.activate("car", "v2", "test", "try", Some(0), None).unwrap(), 1);
+        let err = store.activate("car", &seed, "test", "stale", Some(0), None).unwrap_err();
         assert!(matches!(err, StoreError::Conflict { expected: 0, found: 1, .. }), "{err}");
-        assert!(matches!(store.activate("car", "nope", "t", "r", None), Err(StoreError::UnknownVersion { .. })));
+        assert!(matches!(store.activate("car", "nope", "t", "r", None, None), Err(StoreError::UnknownVersion { .. })));
         assert_eq!(store.rollback("car", "test", "back", None).unwrap(), 2);
         let (generation, head) = store.head("car").unwrap().unwrap();
         assert_eq!((generation, head.version, head.previous.as_deref()), (2, seed.clone(), Some("v2")));
         // A restart does not re-activate the seed over a newer activation... unless it is a seed.
         store.import_seed("car", &shipped()).unwrap();
         assert_eq!(store.head("car").unwrap().unwrap().0, 2);
-        // create_only never overwrites.
-        let path = root.join("x.json");
-        assert!(create_only(&path, b"1").unwrap());
-        assert!(!create_only(&path, b"2").unwrap());
-        assert_eq!(fs::read(&path).unwrap(), b"1");
+        // create never overwrites.
+        assert!(store.create("x.json", b"1".to_vec()).unwrap());
+        assert!(!store.create("x.json", b"2".to_vec()).unwrap());
+        assert_eq!(store.read("x.json").unwrap().unwrap(), b"1");
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_version_without_its_manifest_is_debris_and_is_replaced() {
+        let root = temp("debris");
+        let store = Store::open(&root).unwrap();
+        store.create("models/car/versions/v3/mesh.safetensors", b"partial".to_vec()).unwrap();
+        assert!(store.versions("car").unwrap().is_empty());
+        assert!(matches!(store.manifest("car", "v3"), Err(StoreError::UnknownVersion { .. })));
+        store
+            .put_version("car", "v3", |dir| {
+                fs::create_dir(dir).unwrap();
+                for e in fs::read_dir(shipped()).unwrap() {
+                    let p = e.unwrap().path();
+                    fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
+                }
+                Ok(())
+            })
+            .unwrap();
+        assert_eq!(store.versions("car").unwrap(), ["v3"]);
+        let dir = store.version_dir("car", "v3").unwrap();
+        assert_eq!(
+            fs::read(dir.join("mesh.safetensors")).unwrap(),
+            fs::read(shipped().join("mesh.safetensors")).unwrap()
+        );
+        assert!(store.put_version("car", "v3", |_| Ok(())).is_err(), "versions are immutable");
         fs::remove_dir_all(&root).unwrap();
     }
 }

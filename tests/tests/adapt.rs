@@ -349,18 +349,24 @@ fn kill_9_during_training_and_during_saving_loses_nothing() {
     }
     assert_eq!(active_version(&server), seed);
 
-    // 2. During saving: a partial version directory is left behind.
+    // 2. During saving: a partial version (its files, not its manifest) is left behind; it is
+    //    never listed nor served, and the resumed job replaces it.
     let versions = server.store_dir().join("models/car/versions");
-    let debris = || {
+    let partial = || {
         fs::read_dir(&versions)
             .unwrap()
-            .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with(".tmp"))
+            .filter(|e| {
+                let path = e.as_ref().unwrap().path();
+                path.is_dir() && !path.join("manifest.json").exists()
+            })
             .count()
     };
-    assert_eq!(debris(), 1);
+    assert_eq!(partial(), 1);
     server.crash_and_restart(&[]);
     assert_eq!(active_version(&server), seed, "the restart does not serve the last good version");
-    assert_eq!(debris(), 0);
+    let (_, listed) = server.get("/v1/models/car/versions");
+    let listed: Value = serde_json::from_str(&listed).unwrap();
+    assert_eq!(listed["versions"].as_array().unwrap().len(), 1, "a partial version is listed: {listed}");
     assert_eq!(records(), 60);
 
     // 3. The job resumes from its buffered images and finishes.
@@ -381,6 +387,7 @@ fn kill_9_during_training_and_during_saving_loses_nothing() {
             .collect()
     };
     assert_eq!(states.iter().filter(|s| *s == "QUEUED").count(), 3, "{states:?}"); // queued, and once per restart
+    assert_eq!(partial(), 0, "the resumed job left a partial version");
     // A finished job's images leave the buffer (just after its terminal event).
     let deadline = Instant::now() + Duration::from_secs(10);
     while records() > 0 {

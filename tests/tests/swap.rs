@@ -14,7 +14,7 @@ use support::{Server, quick_images};
 
 #[test]
 fn a_new_activation_is_served_without_a_restart() {
-    let server = Server::config("swap").quick_model().arg("--poll-store-secs").arg("1").start();
+    let server = Server::config("swap").quick_model().arg("--poll").arg("1").start();
     let image = quick_images("source", 1).remove(0);
     let first = server.request("POST", "/v1/pose/car", &[], &image.bytes).json();
     let seed = first["model_version"].as_str().unwrap().to_owned();

@@ -24,6 +24,8 @@ pub struct Server {
     pub http_addr: SocketAddr,
     pub grpc_addr: SocketAddr,
     tls: bool,
+    /// Environment of every start (e.g. store credentials).
+    env: Vec<(String, String)>,
 }
 
 /// How to start a server.
@@ -32,9 +34,29 @@ pub struct ServerConfig {
     quick_model: bool,
     args: Vec<String>,
     tls: bool,
+    store: Option<String>,
+    env: Vec<(String, String)>,
+    wait_ready: bool,
 }
 
 impl ServerConfig {
+    /// Uses this `--store` instead of the server's own directory.
+    pub fn store(mut self, url: &str) -> Self {
+        self.store = Some(url.into());
+        self
+    }
+
+    pub fn env(mut self, key: &str, value: &str) -> Self {
+        self.env.push((key.into(), value.into()));
+        self
+    }
+
+    /// Returns once `/healthz` answers, without waiting for `/readyz`.
+    pub fn no_wait_ready(mut self) -> Self {
+        self.wait_ready = false;
+        self
+    }
+
     /// Serves the quick model (`UDAPOSE_QUICK_MODEL`) as category `car`.
     pub fn quick_model(mut self) -> Self {
         self.quick_model = true;
@@ -72,19 +94,24 @@ impl ServerConfig {
             ("--http-addr", http_addr.to_string()),
             ("--grpc-addr", grpc_addr.to_string()),
             ("--models", models.display().to_string()),
-            ("--store", dir.join("state").display().to_string()),
+            ("--store", self.store.unwrap_or_else(|| dir.join("state").display().to_string())),
         ] {
             command.extend([flag.to_string(), value]);
         }
         command.extend(self.args);
-        let child = spawn(&command, &dir, &[]);
-        let mut server = Server { child, command, dir, http_addr, grpc_addr, tls: self.tls };
+        let env = self.env;
+        let child = spawn(&command, &dir, &pairs(&env));
+        let mut server = Server { child, command, dir, http_addr, grpc_addr, tls: self.tls, env };
         server.wait_for("/healthz");
-        if self.quick_model {
+        if self.quick_model && self.wait_ready {
             server.wait_for("/readyz");
         }
         server
     }
+}
+
+fn pairs(env: &[(String, String)]) -> Vec<(&str, &str)> {
+    env.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect()
 }
 
 /// Spawns the server command, appending to `dir/server.log`.
@@ -104,7 +131,15 @@ fn spawn(command: &[String], dir: &Path, env: &[(&str, &str)]) -> Child {
 
 impl Server {
     pub fn config(name: &str) -> ServerConfig {
-        ServerConfig { name: name.into(), quick_model: false, args: Vec::new(), tls: false }
+        ServerConfig {
+            name: name.into(),
+            quick_model: false,
+            args: Vec::new(),
+            tls: false,
+            store: None,
+            env: Vec::new(),
+            wait_ready: true,
+        }
     }
 
     /// A server with an empty models directory.
@@ -115,19 +150,35 @@ impl Server {
     /// `kill -9`, then the same command again (with `env` added) on the same store; waits for
     /// `/readyz`.
     pub fn crash_and_restart(&mut self, env: &[(&str, &str)]) {
-        self.child.kill().expect("kill -9"); // SIGKILL: no cleanup of any kind
-        self.child.wait().expect("reaping the killed server");
-        self.child = spawn(&self.command, &self.dir, env);
+        self.kill9();
+        self.child = spawn(&self.command, &self.dir, &[pairs(&self.env), env.to_vec()].concat());
         self.wait_for("/healthz");
         self.wait_for("/readyz");
     }
 
     /// Like [`Server::crash_and_restart`], but only starts the new process (for failpoints).
     pub fn crash_and_spawn(&mut self, env: &[(&str, &str)]) {
+        self.kill9();
+        self.child = spawn(&self.command, &self.dir, &[pairs(&self.env), env.to_vec()].concat());
+        self.wait_for("/healthz");
+    }
+
+    /// `kill -9` (SIGKILL: no cleanup of any kind), and reaps the process.
+    pub fn kill9(&mut self) {
         self.child.kill().expect("kill -9");
         self.child.wait().expect("reaping the killed server");
-        self.child = spawn(&self.command, &self.dir, env);
-        self.wait_for("/healthz");
+    }
+
+    /// Sends `signal` (e.g. "CONT") to the process.
+    pub fn signal(&self, signal: &str) {
+        let status = Command::new("kill").arg(format!("-{signal}")).arg(self.child.id().to_string()).status();
+        assert!(status.is_ok_and(|s| s.success()), "kill -{signal} failed");
+    }
+
+    /// Whether the process is stopped (SIGSTOP), from /proc.
+    pub fn stopped(&self) -> bool {
+        fs::read_to_string(format!("/proc/{}/stat", self.child.id()))
+            .is_ok_and(|stat| stat.rsplit(')').next().is_some_and(|rest| rest.trim_start().starts_with('T')))
     }
 
     /// The server's `--store` directory.
