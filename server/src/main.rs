@@ -192,7 +192,10 @@ async fn main() -> Result<()> {
         Err(e) if args.role == Role::Serve => {
             tracing::warn!("{e}; serving anyway (a serve replica never activates on its own)")
         }
-        Err(e) => bail!("{e}: refusing --role {:?}, whose jobs and activations rely on it", args.role),
+        Err(e) => bail!(
+            "{e}: refusing --role {}, whose jobs and activations rely on it",
+            format!("{:?}", args.role).to_lowercase()
+        ),
     }
     let registry = Arc::new(Registry::start(store.clone(), &args.models, &config, metrics.clone())?);
     let poll = Duration::from_secs(args.poll);
