@@ -177,35 +177,20 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     let folder = adapt_images("combined");
     let (ok, stdout, stderr) = udapose(&server, &["adapt", "--category", "car", "--images", folder.to_str().unwrap()]);
     assert!(stdout.contains("uploaded 60 images to car: 60 accepted"), "{stdout}\n{stderr}\n{}", server.log());
-    // The job converges and goes through the gate. On the quick model (retrained every run)
-    // with 12 held-out images the gate's verdict is noisy: it passed in 3 of the 4 runs seen;
-    // in the other, score_margin fell (0.026 against 0.028). A REJECTED job must name the
-    // criterion, and its version is then activated by hand so that the swap is still tested.
+    // The job converges, passes the gate and is activated. (On the 2-epoch quick model used
+    // before, the gate rightly rejected it in 1 of 4 runs: accuracy fell; the 6-epoch model
+    // passed in every run seen, with accuracy equal or higher.)
     let last = stdout.lines().last().unwrap();
     let words: Vec<&str> = last.split_whitespace().collect();
     let job_id = words[1].to_owned();
     let j = job(&server, &job_id);
     let version = j["version"].as_str().unwrap().to_owned();
-    let gate_passed = match words[..] {
-        ["job", _, "ACTIVATED", "version", v] => {
-            assert_eq!(v, version);
-            true
-        }
-        ["job", _, "REJECTED:", ..] => {
-            assert!(last.contains("the gate kept") && j["reason"].as_str().unwrap().contains(':'), "{stdout}");
-            eprintln!("the gate rejected the quick adaptation: {last}");
-            let r = server.request(
-                "POST",
-                "/v1/models/car/activate",
-                &[],
-                format!(r#"{{"version":"{version}"}}"#).as_bytes(),
-            );
-            assert_eq!(r.status, 200, "{}", r.body);
-            false
-        }
-        _ => panic!("unexpected end of the job:\n{stdout}\n{stderr}\n{}", server.log()),
-    };
-    assert_eq!(ok, gate_passed, "udapose adapt exits 0 only on ACTIVATED:\n{stdout}\n{stderr}");
+    assert!(
+        matches!(words[..], ["job", _, "ACTIVATED", "version", v] if v == version),
+        "the job was not activated:\n{stdout}\n{stderr}\n{}",
+        server.log()
+    );
+    assert!(ok, "udapose adapt exits 0 on ACTIVATED:\n{stdout}\n{stderr}");
 
     // The swap reaches the workers; then the load stops.
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -235,7 +220,7 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     let gate = j["last_event"]["gate"].as_array().unwrap();
     let names: Vec<&str> = gate.iter().map(|c| c["name"].as_str().unwrap()).collect();
     assert_eq!(names, ["flip_consistency", "score_margin", "pose_diversity"]);
-    assert_eq!(gate.iter().all(|c| c["passed"] == true), gate_passed, "{gate:?}");
+    assert!(gate.iter().all(|c| c["passed"] == true), "{gate:?}");
     assert!(j["last_event"]["round"].as_u64().unwrap() >= 1);
     // Its images left the buffer (the CLI saw the terminal event; the removal follows it).
     let buffered = || fs::read_dir(server.store_dir().join("buffers/car")).map_or(0, |d| d.count());
@@ -246,14 +231,12 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     }
 
     // Accuracy on the combined test split. The issue asks for "not lower"; the quick model
-    // (retrained every run, Acc@π/6 0.15–0.35 on combined, ±0.12 over 60 images) moves by a few
+    // (retrained every run, Acc@π/6 0.3–0.45 on combined, ±0.12 over 60 images) moves by a few
     // images either way, so 3 images of 60 are allowed, as in lab/tests/adapt.rs: a collapse
     // still fails it.
     let (after, versions_after) = accuracy(&server, &test_images);
     assert_eq!(versions_after, BTreeSet::from([version.clone()]));
-    if gate_passed {
-        assert!(after >= before - 0.05, "Acc@π/6 on combined fell from {before:.3} to {after:.3}");
-    }
+    assert!(after >= before - 0.05, "Acc@π/6 on combined fell from {before:.3} to {after:.3}");
     eprintln!("combined Acc@π/6: {before:.3} before, {after:.3} after adaptation");
 
     // Rollback restores the seed exactly (same weights, --max-batch 1: bit-identical).
@@ -273,8 +256,7 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     let log: Value = serde_json::from_str(&versions).unwrap();
     let actors: Vec<&str> =
         log["activations"].as_array().unwrap().iter().map(|a| a["actor"].as_str().unwrap()).collect();
-    let activator = if gate_passed { format!("job:{job_id}") } else { "api".into() };
-    assert_eq!(actors, ["api", activator.as_str(), "seed"]);
+    assert_eq!(actors, ["api", format!("job:{job_id}").as_str(), "seed"]);
     // A stale expected generation is refused.
     let r = server.request(
         "POST",

@@ -24,7 +24,7 @@ use std::{
 };
 
 use serde_json::Value;
-use support::{Server, env_path, free_addrs, quick_images, scratch_dir};
+use support::{Server, beside_tests, env_path, free_addrs, quick_images, scratch_dir};
 
 /// Replicas re-read the store this often (`--poll`); a new version must reach every replica
 /// within two of these.
@@ -255,11 +255,20 @@ fn three_replicas_and_a_worker_on_s3_adapt_swap_fail_over_and_roll_back() {
     assert_eq!(s3.files("buffers/car").iter().filter(|f| f.ends_with(".json")).count(), sent);
     // 2. A job asked on one replica runs on the worker and is watched on another.
     let id = post(&r[0], "/v1/adapt/car/jobs", b"{}")["job_id"].as_str().unwrap().to_owned();
+    let watch = Command::new(beside_tests("udapose"))
+        .args(["--endpoints", &r[2].grpc_addr.to_string(), "jobs", "watch", &id])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the udapose binary (build the workspace first)");
     let done = wait_job(&r[1], &id, &[&worker], terminal);
     assert_eq!(done["state"], "ACTIVATED", "{done}\n{}", worker.log());
     let used = done["images_used"].as_u64().unwrap() + done["images_held_out"].as_u64().unwrap();
     assert_eq!(used, sent as u64, "every streamed image reached the worker: {done}");
     assert!(worker.log().contains("took a job queued on another replica"), "{}", worker.log());
+    let watched = watch.wait_with_output().unwrap();
+    let watched = String::from_utf8_lossy(&watched.stdout).into_owned() + &String::from_utf8_lossy(&watched.stderr);
+    assert!(watched.contains("RUNNING") && watched.contains("ACTIVATED"), "WatchJob on a serve replica:\n{watched}");
     let v1 = done["version"].as_str().unwrap().to_owned();
     let took = wait_serving(&[&r[0], &r[1], &r[2]], &v1, &image);
     let (ok, failed, why) = load.take();
