@@ -40,10 +40,17 @@ enum Bench {
     /// The label-free validation gate on SynCar-OOD: source vs. adapted model per domain on the
     /// held-out adapt images, and whether each decision agrees with the true accuracy change.
     Gate(gate_cmd::GateArgs),
+    /// Scale-out on one machine: serve replicas and an adapt worker on an S3-compatible store;
+    /// throughput with 1, 2 and 3 replicas, failed requests under faults (kill -9 of a replica
+    /// or of the worker mid-job, swaps, a rollback), and the swap propagation time.
+    Scale(bench_scale::ScaleArgs),
 }
 
 #[path = "bench_service.rs"]
 mod bench_service;
+
+#[path = "bench_scale.rs"]
+mod bench_scale;
 
 #[path = "gate_cmd.rs"]
 mod gate_cmd;
@@ -86,6 +93,7 @@ pub fn run(args: &Args) -> Result<()> {
         Bench::Solver(a) => solver(a),
         Bench::Service(a) => bench_service::run(a),
         Bench::Gate(a) => gate_cmd::run(a),
+        Bench::Scale(a) => bench_scale::run(a),
     }
 }
 

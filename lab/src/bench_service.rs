@@ -103,24 +103,24 @@ pub struct ServiceArgs {
 }
 
 /// One concurrency level's measurements.
-struct Level {
-    concurrency: usize,
-    requests: usize,
-    errors: usize,
-    seconds: f64,
-    latencies_ms: Vec<f64>,
+pub(crate) struct Level {
+    pub(crate) concurrency: usize,
+    pub(crate) requests: usize,
+    pub(crate) errors: usize,
+    pub(crate) seconds: f64,
+    pub(crate) latencies_ms: Vec<f64>,
 }
 
 impl Level {
-    fn throughput(&self) -> f64 {
+    pub(crate) fn throughput(&self) -> f64 {
         (self.requests - self.errors) as f64 / self.seconds
     }
 
-    fn percentile(&self, p: f64) -> f64 {
+    pub(crate) fn percentile(&self, p: f64) -> f64 {
         percentile(&self.latencies_ms, p)
     }
 
-    fn json(&self) -> Value {
+    pub(crate) fn json(&self) -> Value {
         json!({
             "concurrency": self.concurrency,
             "requests": self.requests,
@@ -134,7 +134,7 @@ impl Level {
 }
 
 /// The nearest-rank `p` quantile (0 to 1); NaN when empty.
-fn percentile(v: &[f64], p: f64) -> f64 {
+pub(crate) fn percentile(v: &[f64], p: f64) -> f64 {
     let mut v = v.to_vec();
     v.sort_by(f64::total_cmp);
     if v.is_empty() {
@@ -311,7 +311,7 @@ fn markdown(
 }
 
 /// The PNG bytes of the first `n` images of a folder.
-fn read_images(dir: &Path, n: usize) -> Result<Vec<Vec<u8>>> {
+pub(crate) fn read_images(dir: &Path, n: usize) -> Result<Vec<Vec<u8>>> {
     let mut paths: Vec<PathBuf> = fs::read_dir(dir)
         .with_context(|| format!("listing {}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -324,10 +324,10 @@ fn read_images(dir: &Path, n: usize) -> Result<Vec<Vec<u8>>> {
 }
 
 /// A `udapose-server` on free loopback ports with a scratch models dir and store.
-struct ServerProcess {
-    child: Child,
+pub(crate) struct ServerProcess {
+    pub(crate) child: Child,
     dir: PathBuf,
-    http: SocketAddr,
+    pub(crate) http: SocketAddr,
 }
 
 impl ServerProcess {
@@ -342,8 +342,8 @@ impl ServerProcess {
         let ports: Vec<TcpListener> = (0..2).map(|_| TcpListener::bind("127.0.0.1:0")).collect::<Result<_, _>>()?;
         let (http, grpc) = (ports[0].local_addr()?, ports[1].local_addr()?);
         drop(ports);
-        let log = fs::File::create(dir.join("server.log"))?;
-        let child = Command::new(binary)
+        let mut command = Command::new(binary);
+        command
             .args(["--http-addr", &http.to_string(), "--grpc-addr", &grpc.to_string()])
             .arg("--models")
             .arg(dir.join("models"))
@@ -351,19 +351,31 @@ impl ServerProcess {
             .arg(dir.join("state"))
             .args(["--max-batch", &max_batch.to_string(), "--max-delay-ms", &max_delay_ms.to_string()])
             .args(extra)
-            .env("RUST_LOG", if extra.is_empty() { "warn" } else { "warn,udapose_server=info" })
+            .env("RUST_LOG", if extra.is_empty() { "warn" } else { "warn,udapose_server=info" });
+        Self::spawn(command, dir, http)
+    }
+
+    /// Runs `command` (a server listening for HTTP on `http`) with its output to
+    /// `<dir>/server.log`, and waits until it is ready. `dir` is removed when it is dropped.
+    pub(crate) fn spawn(mut command: Command, dir: PathBuf, http: SocketAddr) -> Result<Self> {
+        fs::create_dir_all(&dir)?;
+        let log = fs::File::create(dir.join("server.log"))?;
+        let child = command
             .env("NO_COLOR", "1")
             .env_remove("UDAPOSE_TOKEN")
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
             .stderr(log)
             .spawn()
-            .with_context(|| format!("starting {}", binary.display()))?;
-        let server = ServerProcess { child, dir, http };
+            .with_context(|| format!("starting {}", command.get_program().display()))?;
+        let mut server = ServerProcess { child, dir, http };
         let deadline = Instant::now() + Duration::from_secs(120);
         while post_or_get(http, "GET", "/readyz", b"").map(|(s, _)| s).unwrap_or(0) != 200 {
             if Instant::now() > deadline {
                 bail!("the server did not become ready: {}", server.log());
+            }
+            if let Ok(Some(status)) = server.child.try_wait() {
+                bail!("the server exited ({status}) before it was ready: {}", server.log());
             }
             std::thread::sleep(Duration::from_millis(100));
         }
@@ -371,7 +383,7 @@ impl ServerProcess {
     }
 
     /// The server's log so far, without terminal colour codes.
-    fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         let text = fs::read_to_string(self.dir.join("server.log")).unwrap_or_default();
         let mut out = String::with_capacity(text.len());
         let mut chars = text.chars();
@@ -390,13 +402,13 @@ impl ServerProcess {
         out
     }
 
-    fn get_json(&self, path: &str) -> Result<Value> {
+    pub(crate) fn get_json(&self, path: &str) -> Result<Value> {
         let (status, body) = post_or_get(self.http, "GET", path, b"").with_context(|| format!("GET {path}"))?;
         ensure!(status == 200, "GET {path}: {status} {body}");
         serde_json::from_str(&body).with_context(|| format!("GET {path}: {body}"))
     }
 
-    fn post_json(&self, path: &str, body: &Value) -> Result<Value> {
+    pub(crate) fn post_json(&self, path: &str, body: &Value) -> Result<Value> {
         let (status, answer) = post_or_get(self.http, "POST", path, body.to_string().as_bytes())
             .with_context(|| format!("POST {path}"))?;
         ensure!(status == 200, "POST {path}: {status} {answer}");
@@ -451,7 +463,7 @@ fn load(http: SocketAddr, images: &[Vec<u8>], concurrency: usize, requests: usiz
 }
 
 /// HTTP/1.1 with `Connection: close`; returns (status, body).
-fn post_or_get(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> std::io::Result<(u16, String)> {
+pub(crate) fn post_or_get(addr: SocketAddr, method: &str, path: &str, body: &[u8]) -> std::io::Result<(u16, String)> {
     let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
     stream.set_read_timeout(Some(Duration::from_secs(120)))?;
     write!(
@@ -480,16 +492,12 @@ struct Cpu {
 
 impl Cpu {
     fn now(server_pid: u32) -> Option<Cpu> {
-        let stat = fs::read_to_string("/proc/stat").ok()?;
-        let ticks: Vec<u64> = stat.lines().next()?.split_whitespace().skip(1).map(|t| t.parse().unwrap_or(0)).collect();
-        // user nice system idle iowait irq softirq steal (guest time is within user)
-        let busy = ticks.iter().take(8).sum::<u64>() - ticks.get(3)? - ticks.get(4)?;
-        let process = |pid: &str| -> Option<u64> {
-            let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-            let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
-            Some(fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?)
-        };
-        Some(Cpu { at: Instant::now(), busy, own: process("self")?, server: process(&server_pid.to_string())? })
+        Some(Cpu {
+            at: Instant::now(),
+            busy: machine_busy_ticks()?,
+            own: process_ticks("self")?,
+            server: process_ticks(&server_pid.to_string())?,
+        })
     }
 
     /// Cores that other processes used on average between `self` and `later`.
@@ -500,30 +508,45 @@ impl Cpu {
     }
 }
 
+/// The CPU time (clock ticks, 100 per second) the whole machine has spent busy since boot.
+pub(crate) fn machine_busy_ticks() -> Option<u64> {
+    let stat = fs::read_to_string("/proc/stat").ok()?;
+    let ticks: Vec<u64> = stat.lines().next()?.split_whitespace().skip(1).map(|t| t.parse().unwrap_or(0)).collect();
+    // user nice system idle iowait irq softirq steal (guest time is within user)
+    Some(ticks.iter().take(8).sum::<u64>() - ticks.get(3)? - ticks.get(4)?)
+}
+
+/// The CPU time (user + system, clock ticks) of process `pid` (or `self`) so far.
+pub(crate) fn process_ticks(pid: &str) -> Option<u64> {
+    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    Some(fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?)
+}
+
 fn others_cores(from: Option<Cpu>, to: Option<Cpu>) -> Option<f64> {
     Some(from?.others(&to?))
 }
 
 /// One estimate a background client sent.
-struct Record {
-    start: Instant,
-    end: Instant,
+pub(crate) struct Record {
+    pub(crate) start: Instant,
+    pub(crate) end: Instant,
     /// The model version that answered, or why the request failed.
-    answer: Result<String, String>,
+    pub(crate) answer: Result<String, String>,
 }
 
 impl Record {
-    fn ms(&self) -> f64 {
+    pub(crate) fn ms(&self) -> f64 {
         (self.end - self.start).as_secs_f64() * 1e3
     }
 
     /// Started and finished within `[from, to]`.
-    fn within(&self, from: Instant, to: Instant) -> bool {
+    pub(crate) fn within(&self, from: Instant, to: Instant) -> bool {
         self.start >= from && self.end <= to
     }
 
     /// In flight at some moment of `[from, to]`.
-    fn overlaps(&self, from: Instant, to: Instant) -> bool {
+    pub(crate) fn overlaps(&self, from: Instant, to: Instant) -> bool {
         self.start <= to && self.end >= from
     }
 
@@ -533,7 +556,7 @@ impl Record {
 }
 
 /// One estimate: the model version that answered it, or why it failed.
-fn estimate(http: SocketAddr, image: &[u8]) -> Result<String, String> {
+pub(crate) fn estimate(http: SocketAddr, image: &[u8]) -> Result<String, String> {
     let short = |s: &str| s.chars().take(200).collect::<String>();
     match post_or_get(http, "POST", "/v1/pose/car", image) {
         Ok((200, body)) => serde_json::from_str::<Value>(&body)
@@ -599,7 +622,7 @@ impl Drop for Clients {
 }
 
 /// The requests that started and finished within `[from, to]`, as a level.
-fn window(records: &[Record], from: Instant, to: Instant, concurrency: usize) -> Level {
+pub(crate) fn window(records: &[Record], from: Instant, to: Instant, concurrency: usize) -> Level {
     let inside: Vec<&Record> = records.iter().filter(|r| r.within(from, to)).collect();
     Level {
         concurrency,
@@ -619,7 +642,7 @@ fn window_json(l: &Level, others: Option<f64>) -> Value {
     v
 }
 
-fn summary(l: &Level) -> String {
+pub(crate) fn summary(l: &Level) -> String {
     format!(
         "{} requests in {:.1} s, {:.2} req/s, p50 {:.0} ms, p99 {:.0} ms, {} errors",
         l.requests,
@@ -631,11 +654,11 @@ fn summary(l: &Level) -> String {
     )
 }
 
-fn min_median_max(v: &[f64]) -> Value {
+pub(crate) fn min_median_max(v: &[f64]) -> Value {
     json!({ "min": percentile(v, 0.0), "median": median(v), "max": percentile(v, 1.0) })
 }
 
-fn median(v: &[f64]) -> f64 {
+pub(crate) fn median(v: &[f64]) -> f64 {
     let mut v = v.to_vec();
     v.sort_by(f64::total_cmp);
     match v.len() {
@@ -833,7 +856,7 @@ fn job_json(job: &Value, overrides: &Value, running_s: f64, validating_s: f64) -
 }
 
 /// What the server logged: its model loads after the first (the swaps) and its warnings.
-fn server_log_json(log: &str) -> Value {
+pub(crate) fn server_log_json(log: &str) -> Value {
     let loads: Vec<f64> = log
         .lines()
         .filter(|l| l.contains("model loaded"))
@@ -1104,7 +1127,7 @@ fn adapt_and_swap(args: &ServiceArgs, server_bin: &Path, model: &Path, images: &
     Ok((adaptation, swap))
 }
 
-fn fmt_ms(v: &Value) -> String {
+pub(crate) fn fmt_ms(v: &Value) -> String {
     v.as_f64().map_or_else(|| "–".into(), |x| format!("{x:.0}"))
 }
 
@@ -1326,7 +1349,7 @@ fn backbone_ceiling(model_dir: &Path, images: &[Vec<u8>], max_batch: usize) -> R
     Ok(Ceiling { batch1, batched, engine })
 }
 
-fn load_average() -> String {
+pub(crate) fn load_average() -> String {
     fs::read_to_string("/proc/loadavg")
         .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
         .unwrap_or_default()
