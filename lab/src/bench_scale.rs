@@ -1146,6 +1146,18 @@ fn bench(
     Ok((report, levels_md, oversubscribed_md))
 }
 
+/// `A → B (×3) → C` for the states `A B B B C`.
+fn states_in_a_row<'a>(states: impl Iterator<Item = &'a str>) -> String {
+    let mut runs: Vec<(&str, usize)> = Vec::new();
+    for s in states {
+        match runs.last_mut() {
+            Some((last, n)) if *last == s => *n += 1,
+            _ => runs.push((s, 1)),
+        }
+    }
+    runs.iter().map(|(s, n)| if *n > 1 { format!("{s} (×{n})") } else { s.to_string() }).collect::<Vec<_>>().join(" → ")
+}
+
 /// The summary table of `levels` (one row per replica count), then the per-process table.
 fn levels_table(levels: &Value, rows_md: &str) -> String {
     let mut out = String::from(
@@ -1194,9 +1206,10 @@ fn markdown(args: &ScaleArgs, report: &Value, levels_md: &str, oversubscribed_md
          store: {} (`{}`). Model `{}`; estimates send {} distinct PNG crops from `{}`; the jobs adapt on `{}`. \
          Load through the gRPC client library: {}. Machine: {}, **{} threads**; load average {} before, {} after; \
          {:.0} s in all. Commit `{}`.{}\n\n\
-         **The replicas, the worker and the client share the machine's {} cores**, so more replicas cannot add \
-         throughput here: the figures below show the overhead of spreading calls over replicas, and that failover and \
-         swaps are correct, not scaling (that needs a core budget per replica, e.g. one machine or pod each).\n\n",
+         **The replicas, the worker and the client share the machine's {} cores**, so this is not a measurement of \
+         scaling: no number of replicas computes more than these cores do, and the figures below show the overhead \
+         of spreading calls over replicas and that failover and swaps are correct. Scaling out needs a core budget \
+         per replica (a machine or a pod each).\n\n",
         report["command"].as_str().unwrap_or(""),
         s["store"].as_str().unwrap_or(""),
         s["flags"].as_str().unwrap_or(""),
@@ -1219,9 +1232,9 @@ fn markdown(args: &ScaleArgs, report: &Value, levels_md: &str, oversubscribed_md
          flight through one client over the first 1, 2 or 3 replicas (after 2 untimed requests per replica); latency \
          as the client sees it; *other processes*: the CPU that processes other than this benchmark, its servers and \
          its store took meanwhile (the machine is shared). Every process runs `--torch-threads {}`: a replica's \
-         backbone then runs on one core, so one replica alone may leave part of the second core idle and a second \
-         replica can take it; that is the only gain more replicas can bring on 2 cores, and the rest is the overhead \
-         of spreading the calls.\n\n",
+         backbone then runs on one core, so one replica alone leaves part of the second core idle and a second \
+         replica can take it (see *CPU of the replicas*); that is the only gain more replicas can bring here, and \
+         beyond it only the overhead of spreading the calls remains.\n\n",
         args.requests, args.concurrency, args.torch_threads
     ));
     md.push_str(&levels_table(&report["levels"], levels_md));
@@ -1326,7 +1339,7 @@ fn markdown(args: &ScaleArgs, report: &Value, levels_md: &str, oversubscribed_md
                 .find_map(|h| h.as_str().filter(|h| h.contains("restart")))
                 .map(|h| format!(" (\"{}\")", h.split_once(": ").map_or(h, |(_, m)| m)))
                 .unwrap_or_default(),
-            history.iter().filter_map(|h| h.as_str()?.split(':').next()).collect::<Vec<_>>().join(" → "),
+            states_in_a_row(history.iter().filter_map(|h| h.as_str()?.split(':').next())),
             d["job"]["state"].as_str().unwrap_or(""),
             d["job"]["last_event"].as_str().unwrap_or(""),
             d["activations_by_job"],
