@@ -40,7 +40,7 @@ S3S_FS := $(UDAPOSE_CACHE)/tools/s3s-fs-$(S3S_FS_VERSION)/bin/s3s-fs
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service bench-scale doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -102,6 +102,11 @@ bench: venv
 # The inference service under load → reports/service.json and .md (needs data/syncar-ood-standard).
 bench-service: build
 	$(BIN)/udapose-lab bench service
+
+# 1-3 serve replicas and an adapt worker on s3s-fs: throughput, faults, swap propagation →
+# reports/scale.json and .md.
+bench-scale: build $(S3S_FS)
+	$(BIN)/udapose-lab bench scale --s3s-fs $(S3S_FS)
 
 doctor: build
 	$(BIN)/udapose-lab doctor
