@@ -3,55 +3,25 @@
 //! gates every update, and the oracle takes exactly its budget. (Whether adaptation *helps* is
 //! measured on real data: lab/tests/adapt.rs and reports/syncar-ood.md.)
 
+mod support;
+
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 
 use tch::{Device, Kind, Tensor, nn};
+use udapose_engine::Pose;
 use udapose_engine::adapt::{self, AdaptConfig, Event, Phase, Selection, Threshold};
-use udapose_engine::backbone::{Arch, Backbone};
-use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
+use udapose_engine::checkpoint;
 use udapose_engine::error::EngineError;
-use udapose_engine::mesh::TARGET_VERTICES;
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
-use udapose_engine::{Cuboid, Pose};
 
+/// The shared random model, saved and loaded back (as a served model is).
 fn random_model(name: &str) -> checkpoint::Model {
     let dir = std::env::temp_dir().join(format!("udapose-adapt-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    tch::manual_seed(5);
-    let cuboid = Cuboid::from_dimensions([0.434, 0.989, 0.279]).unwrap();
-    let m = Manifest {
-        format_version: checkpoint::FORMAT_VERSION,
-        category: "car".into(),
-        version: "source-test".into(),
-        vertices: cuboid.mesh(TARGET_VERTICES).vertices().len(),
-        cuboid,
-        backbone: Arch::ResNet18,
-        feature_dim: 128,
-        crop: [64, 160],
-        clutter: 1,
-        dtype: "f32".into(),
-        training: serde_json::json!({"command": "test"}),
-        metrics: serde_json::Value::Null,
-        files: Default::default(),
-    };
-    let vs = nn::VarStore::new(Device::Cpu);
-    let _backbone = Backbone::new(vs.root(), m.backbone, 128);
-    let r = m.vertices as i64;
-    let unit = |rows: i64| {
-        let t = Tensor::randn([rows, 128], (Kind::Float, Device::Cpu));
-        &t / t.norm_scalaropt_dim(2, [1], true)
-    };
-    let nm = NeuralMesh {
-        mesh: m.cuboid.mesh(TARGET_VERTICES),
-        vertex_features: unit(r),
-        clutter: unit(1),
-        kappa: Tensor::full([r], 1.0 / 0.07, (Kind::Float, Device::Cpu)),
-        tau: Tensor::full([r], 0.8, (Kind::Float, Device::Cpu)),
-        r_bar: Tensor::full([r], 0.9, (Kind::Float, Device::Cpu)),
-    };
+    let model = support::random_model(5, [64, 160], "source-test");
     let path: PathBuf = dir.join("model");
-    checkpoint::save(&path, &m, &vs, &nm).unwrap();
+    checkpoint::save(&path, &model.manifest, &model.vs, &model.neural_mesh).unwrap();
     checkpoint::load(&path, Device::Cpu).unwrap()
 }
 

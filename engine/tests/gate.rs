@@ -3,22 +3,22 @@
 //! and `measure` on a random model and, when `make test` provides it (`UDAPOSE_QUICK_MODEL`,
 //! `UDAPOSE_QUICK_DATA`), on the quick model and real crops.
 
+mod support;
+
 use std::f64::consts::{PI, TAU};
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 
 use sha2::{Digest, Sha256};
-use tch::{Device, Kind, Tensor, nn};
-use udapose_engine::backbone::{Arch, Backbone};
-use udapose_engine::checkpoint::{self, Manifest, Model, NeuralMesh};
+use tch::{Device, Kind, Tensor};
+use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::error::EngineError;
 use udapose_engine::gate::{
     self, Decision, GateConfig, GateStats, ImageCheck, decide, flip_consistent, held_out, measure, mirror_crops,
     mirrored,
 };
-use udapose_engine::mesh::TARGET_VERTICES;
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
-use udapose_engine::{Camera, Cuboid, Pose, View};
+use udapose_engine::{Camera, Pose, View};
 
 // ---------------------------------------------------------------------------------------------
 // The mirror convention
@@ -357,39 +357,7 @@ fn fast_config() -> GateConfig {
 }
 
 fn random_model() -> Model {
-    tch::manual_seed(3);
-    let cuboid = Cuboid::from_dimensions([0.434, 0.989, 0.279]).unwrap();
-    let manifest = Manifest {
-        format_version: checkpoint::FORMAT_VERSION,
-        category: "car".into(),
-        version: "gate-test".into(),
-        vertices: cuboid.mesh(TARGET_VERTICES).vertices().len(),
-        cuboid,
-        backbone: Arch::ResNet18,
-        feature_dim: 128,
-        crop: [32, 80],
-        clutter: 1,
-        dtype: "f32".into(),
-        training: serde_json::json!({"command": "test"}),
-        metrics: serde_json::Value::Null,
-        files: Default::default(),
-    };
-    let vs = nn::VarStore::new(Device::Cpu);
-    let backbone = Backbone::new(vs.root(), manifest.backbone, 128);
-    let r = manifest.vertices as i64;
-    let unit = |rows: i64| {
-        let t = Tensor::randn([rows, 128], (Kind::Float, Device::Cpu));
-        &t / t.norm_scalaropt_dim(2, [1], true)
-    };
-    let neural_mesh = NeuralMesh {
-        mesh: manifest.cuboid.mesh(TARGET_VERTICES),
-        vertex_features: unit(r),
-        clutter: unit(1),
-        kappa: Tensor::full([r], 1.0 / 0.07, (Kind::Float, Device::Cpu)),
-        tau: Tensor::full([r], 0.8, (Kind::Float, Device::Cpu)),
-        r_bar: Tensor::full([r], 0.9, (Kind::Float, Device::Cpu)),
-    };
-    Model { manifest, vs, backbone, neural_mesh }
+    support::random_model(3, [32, 80], "gate-test")
 }
 
 #[test]

@@ -271,16 +271,11 @@ impl AdaptationService for Api {
     async fn start_job(&self, request: Request<pb::StartJobRequest>) -> Result<Response<pb::Job>, Status> {
         self.authorize(&request, Role::Write)?;
         let r = request.into_inner();
-        self.service.category(&r.category).map_err(|e| self.refuse(e, "grpc"))?;
         let o = r.overrides.unwrap_or_default();
         let overrides = Overrides { max_rounds: o.max_rounds, learning_rate: o.learning_rate, seed: o.seed };
         let client_job_id = Some(r.client_job_id).filter(|c| !c.is_empty());
-        let jobs = self.service.jobs.clone();
-        let job = tokio::task::spawn_blocking(move || jobs.start_job(&r.category, overrides, client_job_id))
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?
-            .map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(to_job(job)))
+        let job = self.service.start_job(&r.category, overrides, client_job_id).await;
+        Ok(Response::new(to_job(job.map_err(|e| self.refuse(e, "grpc"))?)))
     }
 
     type WatchJobStream = EventStream;
@@ -295,7 +290,7 @@ impl AdaptationService for Api {
 
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
         self.authorize(&request, Role::Read)?;
-        let job = self.service.jobs.get(&request.get_ref().job_id).map_err(|e| self.refuse(e, "grpc"))?;
+        let job = self.service.job(request.into_inner().job_id).await.map_err(|e| self.refuse(e, "grpc"))?;
         Ok(Response::new(to_job(job)))
     }
 
@@ -309,11 +304,7 @@ impl AdaptationService for Api {
     async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
         self.authorize(&request, Role::Admin)?;
         let r = request.into_inner();
-        let jobs = self.service.jobs.clone();
-        let job = tokio::task::spawn_blocking(move || jobs.cancel(&r.job_id, &r.reason))
-            .await
-            .map_err(|e| Status::internal(e.to_string()))?
-            .map_err(|e| self.refuse(e, "grpc"))?;
+        let job = self.service.cancel_job(r.job_id, r.reason).await.map_err(|e| self.refuse(e, "grpc"))?;
         Ok(Response::new(to_job(job)))
     }
 }

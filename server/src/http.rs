@@ -226,15 +226,7 @@ async fn activate(
     Path(category): Path<String>,
     body: Bytes,
 ) -> Result<Json<crate::service::ActivationView>, HttpError> {
-    authorize(&service, &headers, Role::Admin)?;
-    let b: ActivateBody = json_body(&service, &body)?;
-    let version =
-        b.version.ok_or_else(|| refuse(&service, ApiError::InvalidArgument("the body needs a \"version\"".into())))?;
-    let view = service
-        .activate(&category, Some(version), b.reason, b.expected_generation, "api")
-        .await
-        .map_err(|e| refuse(&service, e))?;
-    Ok(Json(view))
+    switch_version(&service, &headers, &category, &body, false).await
 }
 
 async fn rollback(
@@ -243,16 +235,27 @@ async fn rollback(
     Path(category): Path<String>,
     body: Bytes,
 ) -> Result<Json<crate::service::ActivationView>, HttpError> {
-    authorize(&service, &headers, Role::Admin)?;
-    let b: ActivateBody = json_body(&service, &body)?;
-    if b.version.is_some() {
-        return Err(refuse(&service, ApiError::InvalidArgument("rollback takes no version".into())));
-    }
-    let view = service
-        .activate(&category, None, b.reason, b.expected_generation, "api")
-        .await
-        .map_err(|e| refuse(&service, e))?;
-    Ok(Json(view))
+    switch_version(&service, &headers, &category, &body, true).await
+}
+
+/// Activate (the body names a version) or roll back (it must not).
+async fn switch_version(
+    service: &Service,
+    headers: &HeaderMap,
+    category: &str,
+    body: &Bytes,
+    rollback: bool,
+) -> Result<Json<crate::service::ActivationView>, HttpError> {
+    authorize(service, headers, Role::Admin)?;
+    let b: ActivateBody = json_body(service, body)?;
+    let bad = |why: &str| refuse(service, ApiError::InvalidArgument(why.into()));
+    let version = match (rollback, b.version) {
+        (false, None) => return Err(bad("the body needs a \"version\"")),
+        (true, Some(_)) => return Err(bad("rollback takes no version")),
+        (_, version) => version,
+    };
+    let view = service.activate(category, version, b.reason, b.expected_generation, "api").await;
+    view.map(Json).map_err(|e| refuse(service, e))
 }
 
 /// `POST /v1/adapt/{category}/images`: one image as the raw body, or many as the parts of a
@@ -292,14 +295,9 @@ async fn start_job(
     body: Bytes,
 ) -> Result<Json<crate::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Write)?;
-    service.category(&category).map_err(|e| refuse(&service, e))?;
     let b: StartJobBody = json_body(&service, &body)?;
-    let jobs = service.jobs.clone();
-    let job = tokio::task::spawn_blocking(move || jobs.start_job(&category, b.overrides, b.client_job_id))
-        .await
-        .map_err(|e| HttpError(ApiError::Internal(e.to_string())))?
-        .map_err(|e| refuse(&service, e))?;
-    Ok(Json(job))
+    let job = service.start_job(&category, b.overrides, b.client_job_id).await;
+    job.map(Json).map_err(|e| refuse(&service, e))
 }
 
 async fn list_jobs(
@@ -318,7 +316,7 @@ async fn get_job(
     Path(id): Path<String>,
 ) -> Result<Json<crate::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
-    service.jobs.get(&id).map(Json).map_err(|e| refuse(&service, e))
+    service.job(id).await.map(Json).map_err(|e| refuse(&service, e))
 }
 
 /// Server-Sent Events: one `data:` JSON event per job event (`id:` its seq), from `after_seq`
@@ -359,12 +357,7 @@ async fn cancel_job(
 ) -> Result<Json<crate::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Admin)?;
     let reason = query_value(query.as_deref(), "reason").unwrap_or_default();
-    let jobs = service.jobs.clone();
-    tokio::task::spawn_blocking(move || jobs.cancel(&id, &reason))
-        .await
-        .map_err(|e| HttpError(ApiError::Internal(e.to_string())))?
-        .map(Json)
-        .map_err(|e| refuse(&service, e))
+    service.cancel_job(id, reason).await.map(Json).map_err(|e| refuse(&service, e))
 }
 
 fn query_value(query: Option<&str>, key: &str) -> Option<String> {

@@ -15,7 +15,7 @@ use crate::{
     auth::Tokens,
     decode::{self, DecodeLimits},
     error::ApiError,
-    jobs::{JobEvent, Jobs, TargetAck},
+    jobs::{JobEvent, JobView, Jobs, Overrides, TargetAck},
     metrics::Metrics,
     registry::{Category, Registry},
     store::{Activation, valid_category},
@@ -218,6 +218,29 @@ impl Service {
         .await
     }
 
+    /// `StartJob`: a new job on the category's unclaimed images, or its running one.
+    pub async fn start_job(
+        &self,
+        category: &str,
+        overrides: Overrides,
+        client_job_id: Option<String>,
+    ) -> Result<JobView, ApiError> {
+        let name = self.category(category)?.name.clone();
+        let jobs = self.jobs.clone();
+        blocking(move || jobs.start_job(&name, overrides, client_job_id)).await
+    }
+
+    /// A job (read from the store when it was created on another replica).
+    pub async fn job(&self, id: String) -> Result<JobView, ApiError> {
+        let jobs = self.jobs.clone();
+        blocking(move || jobs.get(&id)).await
+    }
+
+    pub async fn cancel_job(&self, id: String, reason: String) -> Result<JobView, ApiError> {
+        let jobs = self.jobs.clone();
+        blocking(move || jobs.cancel(&id, &reason)).await
+    }
+
     /// Activates `version` (`None`: rolls back to the head's previous version) and swaps the
     /// serving workers to it.
     pub async fn activate(
@@ -305,7 +328,7 @@ pub fn watch(
     Ok(tokio_stream::wrappers::ReceiverStream::new(rx))
 }
 
-/// Runs file-system work off the async runtime.
+/// Runs store work (files, or S3 calls) off the async runtime.
 async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
     tokio::task::spawn_blocking(f).await.map_err(|e| ApiError::Internal(format!("a worker task failed: {e}")))?
 }
