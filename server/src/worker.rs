@@ -9,7 +9,7 @@ use std::{
 };
 
 use anyhow::{Context, Result};
-use crossbeam_channel::Receiver;
+use crossbeam_channel::{Receiver, RecvTimeoutError};
 use tch::Device;
 use tokio::sync::oneshot;
 use udapose_engine::{
@@ -97,20 +97,35 @@ pub fn spawn(
     Ok(())
 }
 
+/// How often an idle worker looks for a new active version, so that a swap is loaded before
+/// the next request rather than by it.
+const IDLE_CHECK: Duration = Duration::from_millis(200);
+
 fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: &Metrics) {
     let Some(mut loaded) = load_active(category, config.device, None) else { return };
     category.worker_loaded();
     let depth = metrics.queue_depth.with_label_values(&[category.name.as_str()]);
     let batch_sizes = metrics.batch_size.with_label_values(&[category.name.as_str()]);
-    while let Ok(first) = rx.recv() {
+    // A generation that failed to load is not retried until another one is activated.
+    let mut failed = None;
+    loop {
+        let first = match rx.recv_timeout(IDLE_CHECK) {
+            Ok(job) => Some(job),
+            Err(RecvTimeoutError::Timeout) => None,
+            Err(RecvTimeoutError::Disconnected) => return,
+        };
         // Swap between batches: a new generation is loaded here, on this thread, while the
         // previous copy keeps serving until it is ready.
         if let Some(active) = category.active()
             && active.generation != loaded.active.generation
-            && let Some(next) = load_active(category, config.device, Some(&loaded))
+            && failed != Some(active.generation)
         {
-            loaded = next;
+            match load_active(category, config.device, Some(&loaded)) {
+                Some(next) => loaded = next,
+                None => failed = Some(active.generation),
+            }
         }
+        let Some(first) = first else { continue };
         let batch = collect(rx, first, config);
         depth.set(rx.len() as i64);
         let crops: usize = batch.iter().map(Job::crops).sum();
