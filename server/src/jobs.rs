@@ -679,8 +679,18 @@ impl Jobs {
         } else {
             let train = self.images(&spec.category, &spec.train, crop)?;
             let started = Instant::now();
+            // Set when the images do not look like the category (see GateConfig::min_target_fired).
+            let mut mismatch = None;
+            let min_fired = self.config.gate.min_target_fired;
             let mut on_event = |event: Event| {
                 if cancel.load(Ordering::Acquire) {
+                    return ControlFlow::Break(());
+                }
+                if let Event::Round(r) = event
+                    && r.round == 1
+                    && r.fired_ratio_before < min_fired
+                {
+                    mismatch = Some(r.fired_ratio_before);
                     return ControlFlow::Break(());
                 }
                 if let Event::Round(r) = event {
@@ -699,8 +709,23 @@ impl Jobs {
                 }
                 ControlFlow::Continue(())
             };
-            let adapted = adapt::adapt(&source, &train, &config, &mut on_event)?;
+            let adapted = adapt::adapt(&source, &train, &config, &mut on_event);
             drop(train);
+            if let Some(fired) = mismatch {
+                self.append(id, JobState::Rejected, |e| {
+                    e.message = format!(
+                        "the target images do not look like {} to {}: {:.1}% of visible vertices fire \
+                         (at least {:.1}% needed); nothing was saved",
+                        spec.category,
+                        spec.source_version,
+                        100.0 * fired,
+                        100.0 * min_fired
+                    );
+                    e.fired_ratio = fired;
+                })?;
+                return Ok(());
+            }
+            let adapted = adapted?;
             let manifest = Manifest {
                 version: spec.version.clone(),
                 training: json!({
