@@ -296,14 +296,21 @@ impl Jobs {
             if !self.config.runs_jobs {
                 continue;
             }
-            self.lock().jobs.get_mut(&id).expect("inserted above").owned = true;
+            let take = |jobs: &Self| {
+                let mut inner = jobs.lock();
+                inner.jobs.get_mut(&spec.job_id).expect("inserted above").owned = true;
+                inner.queue.push_back(spec.job_id.clone());
+                jobs.wake.notify_all();
+            };
             match state {
                 Some(s) if s.terminal() => self.release(&spec),
                 Some(JobState::Queued) if !restart => {
                     tracing::info!(job = %id, "took a job queued on another replica");
-                    self.lock().queue.push_back(id);
-                    self.wake.notify_all();
+                    take(self);
                 }
+                // Running on another worker that is alive: followed, not taken (at a restart,
+                // below, what was running was this process's and is run again).
+                _ if !restart => {}
                 Some(JobState::Validating) if self.activated_by(&spec)? => {
                     self.append(&id, JobState::Activated, |e| {
                         e.message = "found in the activation log after a restart".into();
@@ -314,8 +321,7 @@ impl Jobs {
                     self.append(&id, JobState::Queued, |e| {
                         e.message = "interrupted by a restart; runs again from its buffered images".into();
                     })?;
-                    self.lock().queue.push_back(id);
-                    self.wake.notify_all();
+                    take(self);
                 }
             }
         }
