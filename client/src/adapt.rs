@@ -5,7 +5,6 @@
 use std::{
     collections::{BTreeMap, VecDeque},
     pin::Pin,
-    task::{Context, Poll},
     time::Duration,
 };
 
@@ -18,7 +17,7 @@ use udapose_proto::v1::{
     TargetAck, TargetImage, WatchJobRequest, adaptation_service_client::AdaptationServiceClient, target_ack,
 };
 
-use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, Tries};
+use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, Replies, Tries};
 
 /// Images sent on a `StreamTargets` stream and not yet acknowledged, at most: the server acks
 /// each once it is durable, so a few in flight hide the round trip and the fsync.
@@ -41,41 +40,11 @@ pub struct Upload {
 /// The uploads of [`Client::stream_targets`], one per image, in the order the images were given.
 /// Ends after the last image's upload, or after an `Err` (the images after it were not all
 /// acknowledged).
-pub struct Uploads(ReceiverStream<Result<Upload, Error>>);
-
-impl Stream for Uploads {
-    type Item = Result<Upload, Error>;
-
-    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
-        Pin::new(&mut self.0).poll_next(cx)
-    }
-}
-
-impl Uploads {
-    /// The next upload; `None` once every image has one.
-    pub async fn message(&mut self) -> Result<Option<Upload>, Error> {
-        self.0.next().await.transpose()
-    }
-}
+pub type Uploads = Replies<Upload>;
 
 /// A job's events from [`Client::watch_job`], in `seq` order, without gaps or repeats across
 /// reconnections. Ends after the terminal event, or after an `Err`.
-pub struct JobEvents(ReceiverStream<Result<JobEvent, Error>>);
-
-impl Stream for JobEvents {
-    type Item = Result<JobEvent, Error>;
-
-    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
-        Pin::new(&mut self.0).poll_next(cx)
-    }
-}
-
-impl JobEvents {
-    /// The next event; `None` after the terminal one.
-    pub async fn message(&mut self) -> Result<Option<JobEvent>, Error> {
-        self.0.next().await.transpose()
-    }
-}
+pub type JobEvents = Replies<JobEvent>;
 
 /// A state a job never leaves: ACTIVATED, REJECTED, SUPERSEDED, FAILED or CANCELLED.
 pub fn is_terminal(state: i32) -> bool {
@@ -140,7 +109,7 @@ impl Client {
                 let _ = out.send(Err(e)).await;
             }
         });
-        Uploads(ReceiverStream::new(rx))
+        Replies::new(rx)
     }
 
     /// Starts an adaptation job on the category's unused buffered images, or returns the job
@@ -181,7 +150,7 @@ impl Client {
                 let _ = out.send(Err(e)).await;
             }
         });
-        Ok(JobEvents(ReceiverStream::new(rx)))
+        Ok(Replies::new(rx))
     }
 
     /// One job, with its last event.

@@ -57,6 +57,33 @@ pub use udapose_proto::v1::{
 };
 pub use video::Estimates;
 
+/// A call's replies, in order, as a stream ([`Uploads`], [`JobEvents`], [`Estimates`]): fed by
+/// the task that keeps the call going across reconnections. Ends after the last reply, or
+/// after an `Err`.
+pub struct Replies<T>(tokio_stream::wrappers::ReceiverStream<Result<T, Error>>);
+
+impl<T> Replies<T> {
+    fn new(rx: tokio::sync::mpsc::Receiver<Result<T, Error>>) -> Self {
+        Replies(tokio_stream::wrappers::ReceiverStream::new(rx))
+    }
+
+    /// The next reply; `None` after the last one.
+    pub async fn message(&mut self) -> Result<Option<T>, Error> {
+        tokio_stream::StreamExt::next(&mut self.0).await.transpose()
+    }
+}
+
+impl<T> tokio_stream::Stream for Replies<T> {
+    type Item = Result<T, Error>;
+
+    fn poll_next(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Self::Item>> {
+        std::pin::Pin::new(&mut self.0).poll_next(cx)
+    }
+}
+
 /// How long to wait for a TCP connection before giving up on an endpoint.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(1);
 /// The first retry's delay; doubled per attempt.

@@ -3,19 +3,14 @@
 //! the next endpoint up. Estimates are idempotent, so a frame answered twice costs only time;
 //! the caller sees each answer once.
 
-use std::{
-    collections::VecDeque,
-    pin::Pin,
-    task::{Context, Poll},
-    time::Duration,
-};
+use std::{collections::VecDeque, pin::Pin, time::Duration};
 
 use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt, wrappers::ReceiverStream};
 use tonic::{Status, Streaming};
 use udapose_proto::v1::{EstimateRequest, EstimateResponse, pose_service_client::PoseServiceClient};
 
-use crate::{Client, Error, Tries};
+use crate::{Client, Error, Replies, Tries};
 
 /// Frames sent and not yet answered, at most: enough to hide the round trip, few enough to
 /// keep (and resend) cheaply. The caller's stream is read no faster.
@@ -25,22 +20,7 @@ const CLOSE_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// The answers of [`Client::estimate_stream`], one per frame, in order. Ends after the last
 /// frame's answer, or after an `Err`.
-pub struct Estimates(ReceiverStream<Result<EstimateResponse, Error>>);
-
-impl Stream for Estimates {
-    type Item = Result<EstimateResponse, Error>;
-
-    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
-        Pin::new(&mut self.0).poll_next(cx)
-    }
-}
-
-impl Estimates {
-    /// The next answer; `None` once every frame has one and the frames have ended.
-    pub async fn message(&mut self) -> Result<Option<EstimateResponse>, Error> {
-        self.0.next().await.transpose()
-    }
-}
+pub type Estimates = Replies<EstimateResponse>;
 
 type Frames = Pin<Box<dyn Stream<Item = EstimateRequest> + Send>>;
 
@@ -62,7 +42,7 @@ impl Client {
                 let _ = out.send(Err(e)).await;
             }
         });
-        Ok(Estimates(ReceiverStream::new(rx)))
+        Ok(Replies::new(rx))
     }
 }
 
