@@ -544,6 +544,32 @@ fn wait_job(node: &Node, id: &str, timeout: Duration, done: impl Fn(&str) -> boo
     }
 }
 
+/// A job's version and how it reached the replicas.
+struct Swap {
+    version: String,
+    /// Per replica, ms from the activation to its first answer by the version.
+    propagation_ms: Vec<f64>,
+    steps: Vec<Value>,
+    probes: Vec<Value>,
+}
+
+/// Waits for job `id` on `worker` to end ACTIVATED, then for its version to reach `nodes`.
+fn activated_swap(worker: &Node, id: &str, nodes: &[&Node], image: &[u8], timeout: Duration) -> Result<(Value, Swap)> {
+    let (done, _) = wait_job(worker, id, timeout, terminal)?;
+    ensure!(
+        job_state(&done) == "ACTIVATED",
+        "job {id} ended {}: {}\n{}",
+        job_state(&done),
+        done["reason"],
+        worker.server.log()
+    );
+    let version = done["version"].as_str().context("the job has no version")?.to_owned();
+    let epoch = done["updated"].as_f64().unwrap_or_else(now_epoch);
+    let (propagation_ms, probes) = wait_serving(nodes, &version, instant_of(epoch), image, timeout)?;
+    let steps = swap_steps(nodes, &version, epoch);
+    Ok((done, Swap { version, propagation_ms, steps, probes }))
+}
+
 /// Waits until each node answers an estimate with `version` (its registry is polled every
 /// 50 ms, then estimates confirm it); returns each node's delay after `since`, in ms.
 /// The probes' estimates (sent and answered, ms after `since`, and the answering version) go to
@@ -911,18 +937,8 @@ fn bench(
     let job = replicas[0].server.post_json("/v1/adapt/car/jobs", &job_body)?;
     let id_a = job["job_id"].as_str().context("no job_id")?.to_owned();
     eprintln!("  uploaded {statuses_a:?}; job {id_a} asked on serve-0");
-    let (done_a, _) = wait_job(&worker, &id_a, timeout, terminal)?;
-    ensure!(
-        job_state(&done_a) == "ACTIVATED",
-        "job {id_a} ended {}: {}\n{}",
-        job_state(&done_a),
-        done_a["reason"],
-        worker.server.log()
-    );
-    let version_a = done_a["version"].as_str().context("the job has no version")?.to_owned();
-    let epoch_a = done_a["updated"].as_f64().unwrap_or_else(now_epoch);
-    let (prop_a, probes_a) = wait_serving(&all, &version_a, instant_of(epoch_a), image, timeout)?;
-    let steps_a = swap_steps(&all, &version_a, epoch_a);
+    let (done_a, Swap { version: version_a, propagation_ms: prop_a, steps: steps_a, probes: probes_a }) =
+        activated_swap(&worker, &id_a, &all, image, timeout)?;
     let snap_a1 = snapshot(&replicas, &worker, store_pid);
     let a_to = snap_a1.at;
     eprintln!(
@@ -1012,18 +1028,8 @@ fn bench(
     let new_worker = fleet.start("worker-restarted", "adapt", [worker_addrs[0], worker_addrs[1]])?;
     let old_worker = std::mem::replace(&mut worker, new_worker);
     drop(old_worker);
-    let (done_d, _) = wait_job(&worker, &id_d, timeout, terminal)?;
-    ensure!(
-        job_state(&done_d) == "ACTIVATED",
-        "job {id_d} ended {}: {}\n{}",
-        job_state(&done_d),
-        done_d["reason"],
-        worker.server.log()
-    );
-    let version_d = done_d["version"].as_str().context("no version")?.to_owned();
-    let epoch_d = done_d["updated"].as_f64().unwrap_or_else(now_epoch);
-    let (prop_d, probes_d) = wait_serving(&all, &version_d, instant_of(epoch_d), image, timeout)?;
-    let steps_d = swap_steps(&all, &version_d, epoch_d);
+    let (done_d, Swap { version: version_d, propagation_ms: prop_d, steps: steps_d, probes: probes_d }) =
+        activated_swap(&worker, &id_d, &all, image, timeout)?;
     let snap_d1 = snapshot(&replicas, &worker, store_pid);
     let d_to = snap_d1.at;
     let log = replicas[0].server.get_json("/v1/models/car/versions")?;
