@@ -104,21 +104,32 @@ impl Category {
 
     /// Re-reads the activation log and publishes its head if it changed (the hot-swap path that
     /// adaptation jobs and replicas polling the store use). Returns whether it changed.
+    /// Only the log is read while nothing changed (the manifest and the download come with a
+    /// new generation).
     pub fn refresh(&self, store: &Store) -> Result<bool, StoreError> {
-        let next = read_active(store, &self.name)?;
-        let changed = self.active().map(|a| a.generation) != next.as_ref().map(|a| a.generation);
-        if changed {
-            self.active.store(next.map(Arc::new));
+        let head = store.head(&self.name)?;
+        if self.active().map(|a| a.generation) == head.as_ref().map(|(g, _)| *g) {
+            return Ok(false);
         }
-        Ok(changed)
+        let next = head.map(|head| active_version(store, &self.name, head)).transpose()?;
+        self.active.store(next.map(Arc::new));
+        Ok(true)
     }
 }
 
 fn read_active(store: &Store, category: &str) -> Result<Option<ActiveVersion>, StoreError> {
-    let Some((generation, head)) = store.head(category)? else { return Ok(None) };
+    store.head(category)?.map(|head| active_version(store, category, head)).transpose()
+}
+
+/// The log's head as a version to serve: its manifest, and a local directory holding it.
+fn active_version(
+    store: &Store,
+    category: &str,
+    (generation, head): (u64, crate::store::Activation),
+) -> Result<ActiveVersion, StoreError> {
     let manifest = store.manifest(category, &head.version)?;
     let dir = store.version_dir(category, &head.version)?;
-    Ok(Some(ActiveVersion { version: head.version, generation, dir, manifest }))
+    Ok(ActiveVersion { version: head.version, generation, dir, manifest })
 }
 
 /// Whether every configured model is loaded, and why not.
