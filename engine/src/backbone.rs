@@ -143,9 +143,17 @@ const TRUNK_CONV_INIT: Init = Init::Kaiming {
     non_linearity: nn::init::NonLinearity::ReLU,
 };
 
+/// BatchNorm's running-statistics momentum (torch.nn.BatchNorm2d's).
+const BN_MOMENTUM: f64 = 0.1;
+
 /// BatchNorm as torch.nn.BatchNorm2d: weight 1, bias 0, eps 1e-5, momentum 0.1.
 fn bn(p: nn::Path, c: i64) -> nn::BatchNorm {
-    let cfg = nn::BatchNormConfig { ws_init: Init::Const(1.0), bs_init: Init::Const(0.0), ..Default::default() };
+    let cfg = nn::BatchNormConfig {
+        ws_init: Init::Const(1.0),
+        bs_init: Init::Const(0.0),
+        momentum: BN_MOMENTUM,
+        ..Default::default()
+    };
     nn::batch_norm2d(p, c, cfg)
 }
 
@@ -382,6 +390,43 @@ impl Backbone {
         let loaded = found.len();
         crate::checkpoint::copy_checked(file, &trunk, found)?;
         Ok(TorchvisionLoad { loaded, ignored })
+    }
+}
+
+impl Backbone {
+    /// Replaces every BatchNorm's running mean and variance by their average over `images`
+    /// (N×3×H×W RGB in [0, 1]) in batches of `batch` (AdaBN). Learned scales and shifts are
+    /// kept. tch's BatchNorm only offers a fixed-momentum EMA, so each batch's statistics are
+    /// recovered from the running value before and after its train-mode forward. Returns the
+    /// number of statistics tensors replaced. The backbone must live in `vs`.
+    pub fn reestimate_batchnorm(&self, vs: &nn::VarStore, images: &Tensor, batch: usize) -> Result<usize> {
+        let n = images.size().first().copied().unwrap_or(0);
+        if n == 0 || batch == 0 {
+            return Err(EngineError::InvalidInput("BatchNorm statistics need at least one image".into()));
+        }
+        let own = |name: &str| self.prefix.is_empty() || name.starts_with(&format!("{}.", self.prefix));
+        let stats: Vec<Tensor> = vs
+            .variables()
+            .into_iter()
+            .filter(|(name, _)| own(name) && (name.ends_with(".running_mean") || name.ends_with(".running_var")))
+            .map(|(_, t)| t)
+            .collect();
+        let _no_grad = tch::no_grad_guard();
+        let mut sums: Vec<Tensor> = stats.iter().map(Tensor::zeros_like).collect();
+        let mut batches = 0i64;
+        for start in (0..n).step_by(batch) {
+            let x = images.narrow(0, start, (batch as i64).min(n - start)).to_device(vs.device());
+            let before: Vec<Tensor> = stats.iter().map(Tensor::copy).collect();
+            let _ = self.forward_t(&preprocess(&x)?, true);
+            for ((sum, now), old) in sums.iter_mut().zip(&stats).zip(&before) {
+                *sum += (now - old * (1.0 - BN_MOMENTUM)) / BN_MOMENTUM;
+            }
+            batches += 1;
+        }
+        for (mut t, sum) in stats.iter().map(Tensor::shallow_clone).zip(&sums) {
+            t.copy_(&(sum / batches as f64));
+        }
+        Ok(stats.len())
     }
 }
 

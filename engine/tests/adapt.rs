@@ -96,12 +96,23 @@ fn adaptation_leaves_the_source_alone_and_reports_each_phase() {
 fn nothing_fires_above_a_cosine_of_one_so_nothing_changes() {
     let source = random_model("nofire");
     let before = snapshot(&source.vs);
-    let adapted = adapt::adapt(&source, &images(4), &config(1.0), &mut |_| ControlFlow::Continue(())).unwrap();
+    let frozen = AdaptConfig { target_batchnorm: false, ..config(1.0) };
+    let adapted = adapt::adapt(&source, &images(4), &frozen, &mut |_| ControlFlow::Continue(())).unwrap();
     for r in &adapted.rounds {
         assert_eq!((r.fired_ratio, r.vertices_updated, r.images_trained), (0.0, 0.0, 0));
     }
     assert_eq!(adapted.backbone_steps, 0);
     assert!(same(&before, &snapshot(&adapted.vs)));
+    assert!(adapted.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features));
+
+    // With the default AdaBN step, only the BatchNorm statistics move.
+    let adapted = adapt::adapt(&source, &images(4), &config(1.0), &mut |_| ControlFlow::Continue(())).unwrap();
+    let is_stat = |k: &str| k.ends_with(".running_mean") || k.ends_with(".running_var");
+    let split = |v: Vec<(String, Tensor)>| v.into_iter().partition::<Vec<_>, _>(|(k, _)| is_stat(k));
+    let ((stats_before, weights_before), (stats_after, weights_after)) =
+        (split(snapshot(&source.vs)), split(snapshot(&adapted.vs)));
+    assert!(same(&weights_before, &weights_after), "a weight changed although nothing fired");
+    assert!(!same(&stats_before, &stats_after), "the BatchNorm statistics were not re-estimated");
     assert!(adapted.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features));
 }
 

@@ -190,6 +190,43 @@ fn resnet18_features_have_stride_8_and_unit_norm() {
 }
 
 #[test]
+fn batchnorm_statistics_are_reestimated_on_the_images() {
+    tch::manual_seed(1);
+    let (vs, net) = build(Arch::ResNet18);
+    // Low-contrast images (as under fog): bn1's input statistics differ from the defaults.
+    let images = Tensor::rand([6, 3, 64, 96], F32) * 0.2 + 0.4;
+    let var = |name: &str| vs.variables()[name].copy();
+    let weight = var("bn1.weight");
+    // 20 BatchNorms in the ResNet-18 trunk, 6 in the decoder's three DoubleConvs.
+    assert_eq!(net.reestimate_batchnorm(&vs, &images, 2).unwrap(), 2 * 26);
+    // bn1 sees conv1's output: its new running mean is the mean over the three equal batches,
+    // and its variance the mean of the batches' unbiased variances.
+    let x = backbone::preprocess(&images).unwrap();
+    let y = tch::no_grad(|| x.apply(&net_conv1(&vs)));
+    let want_mean = y.mean_dim([0i64, 2, 3].as_slice(), false, Kind::Float);
+    let want_var = Tensor::stack(
+        &(0..3).map(|b| y.narrow(0, 2 * b, 2).var_dim([0i64, 2, 3].as_slice(), true, false)).collect::<Vec<_>>(),
+        0,
+    )
+    .mean_dim(0, false, Kind::Float);
+    assert!(max_abs_diff(&var("bn1.running_mean"), &want_mean) < 1e-4);
+    assert!(max_abs_diff(&var("bn1.running_var"), &want_var) < 1e-3 * want_var.abs().max().double_value(&[]));
+    assert_eq!(max_abs_diff(&var("bn1.weight"), &weight), 0.0, "learned scales are kept");
+    // Eval-mode features now use the images' statistics, deterministically.
+    let a = tch::no_grad(|| net.forward_t(&x, false));
+    let b = tch::no_grad(|| net.forward_t(&x, false));
+    assert_eq!(max_abs_diff(&a, &b), 0.0);
+    let empty = Tensor::zeros([0, 3, 64, 96], F32);
+    assert!(matches!(net.reestimate_batchnorm(&vs, &empty, 2), Err(EngineError::InvalidInput(_))));
+}
+
+/// conv1 of the backbone in `vs`, rebuilt from its weight (torchvision: 7×7, stride 2, pad 3).
+fn net_conv1(vs: &nn::VarStore) -> impl nn::Module {
+    let w = vs.variables()["conv1.weight"].copy();
+    nn::func(move |x| x.conv2d(&w, None::<Tensor>, [2, 2], [3, 3], [1, 1], 1))
+}
+
+#[test]
 fn preprocess_normalises_like_torchvision() {
     let (h, w) = (5usize, 7usize);
     let pixels: Vec<u8> = (0..h * w * 3).map(|i| (i * 37 % 256) as u8).collect();

@@ -52,6 +52,10 @@ pub struct Knobs {
     /// Images scoring below this quantile of a round are left out of the backbone step.
     #[arg(long)]
     drop_quantile: Option<f64>,
+    /// Keep the source BatchNorm statistics (by default they are replaced by the target
+    /// images' own first: AdaBN).
+    #[arg(long)]
+    no_target_bn: bool,
     /// Re-estimate κ_r from the fired features.
     #[arg(long)]
     reestimate_kappa: bool,
@@ -72,6 +76,7 @@ impl Knobs {
         c.update_clutter = self.update_clutter;
         c.drop_quantile = self.drop_quantile.unwrap_or(c.drop_quantile);
         c.reestimate_kappa = self.reestimate_kappa;
+        c.target_batchnorm &= !self.no_target_bn;
         if let Some(t) = self.fixed_threshold {
             c.threshold = Threshold::Fixed(t);
         }
