@@ -63,13 +63,14 @@ pub struct SolverArgs {
     /// SynCar-OOD root.
     #[arg(long)]
     data: PathBuf,
-    /// The first this many images of the split.
+    /// The first this many images of each split.
     #[arg(long, default_value_t = 50)]
     images: usize,
     #[arg(long, default_value = "source")]
     domain: String,
-    #[arg(long, default_value = "test")]
-    split: String,
+    /// One split, or several (comma-separated, e.g. test,val,adapt) pooled into one comparison.
+    #[arg(long, default_value = "test", value_delimiter = ',')]
+    split: Vec<String>,
     /// Report (JSON; a Markdown twin is written next to it).
     #[arg(long, default_value = "reports/solver.json")]
     out: PathBuf,
@@ -146,6 +147,28 @@ fn median(v: impl Iterator<Item = f64>) -> f64 {
     }
 }
 
+/// Acc@π/6 of udapose (its default, and METHOD's steps) against the reference on the same
+/// images: how many only one of them gets right, and the difference with a 95% paired
+/// bootstrap interval (1000 resamples, seed 0).
+fn paired_accuracy(rows: &[Row]) -> serde_json::Value {
+    use rand::{Rng, SeedableRng};
+    let hit = |s: &Solved| f64::from(u8::from(s.error < std::f64::consts::FRAC_PI_6));
+    let compare = |pick: fn(&Row) -> &Solved| {
+        let diff: Vec<f64> = rows.iter().map(|r| hit(pick(r)) - hit(&r.reference)).collect();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(0);
+        let mut draws: Vec<f64> =
+            (0..1000).map(|_| mean((0..diff.len()).map(|_| diff[rng.random_range(0..diff.len())]))).collect();
+        draws.sort_by(f64::total_cmp);
+        json!({
+            "only_udapose_right": diff.iter().filter(|&&d| d > 0.0).count(),
+            "only_reference_right": diff.iter().filter(|&&d| d < 0.0).count(),
+            "acc_pi_6_difference": mean(diff.iter().copied()),
+            "ci95": [draws[25], draws[974]],
+        })
+    };
+    json!({"udapose": compare(|r| &r.fast), "udapose_method": compare(|r| &r.method)})
+}
+
 fn ms_since(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
@@ -207,28 +230,34 @@ fn solver(args: &SolverArgs) -> Result<()> {
         tch::set_num_threads(args.backbone_torch_threads);
     }
     let torch_threads = tch::get_num_threads();
-    let split = SyncarSplit::open(&args.data, &args.domain, &args.split)?;
-    if split.len() < args.images {
-        bail!("{}/{} has {} images, fewer than --images {}", args.domain, args.split, split.len(), args.images);
+    let mut samples = Vec::new();
+    for name in &args.split {
+        let split = SyncarSplit::open(&args.data, &args.domain, name)?;
+        if split.len() < args.images {
+            bail!("{}/{name} has {} images, fewer than --images {}", args.domain, split.len(), args.images);
+        }
+        samples.push((name.as_str(), split));
     }
+    let total = args.images * samples.len();
     let grid = camera.at_stride(config.stride)?;
     let style = ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {elapsed} eta {eta} {msg}")
         .expect("valid template")
         .progress_chars("=> ");
-    let bar =
-        |prefix: &str| ProgressBar::new(args.images as u64).with_style(style.clone()).with_prefix(prefix.to_string());
+    let bar = |prefix: &str| ProgressBar::new(total as u64).with_style(style.clone()).with_prefix(prefix.to_string());
 
     // Phase 1: the backbone's features of every image, timed per image (decoding is not timed),
     // after one untimed warm-up call.
-    let mut images = Vec::with_capacity(args.images);
+    let mut images = Vec::with_capacity(total);
     let progress = bar("backbone");
-    for i in 0..args.images {
-        let (pixels, truth, ih, iw, name) = load_sample(&split, i)?;
+    let each = samples.iter().flat_map(|(name, split)| (0..args.images).map(move |i| (*name, split, i)));
+    for (k, (split_name, split, i)) in each.enumerate() {
+        let (pixels, truth, ih, iw, name) = load_sample(split, i)?;
+        let name = if samples.len() > 1 { format!("{split_name}/{name}") } else { name };
         if (ih, iw) != (h, w) {
             bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
         }
         let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
-        if i == 0 {
+        if k == 0 {
             estimator::features(&model.backbone, &image)?;
         }
         let t = Instant::now();
@@ -246,7 +275,7 @@ fn solver(args: &SolverArgs) -> Result<()> {
     // Phase 2: udapose's solver (its default, and METHOD's 300 steps) on those features.
     estimator::estimate(mesh, &solver_mesh, &images[0].3, &camera, &config)?; // warm-up
     let progress = bar("udapose");
-    let mut fast = Vec::with_capacity(args.images);
+    let mut fast = Vec::with_capacity(total);
     for (_, truth, _, f) in &images {
         let t = Instant::now();
         let estimate = estimator::estimate(mesh, &solver_mesh, f, &camera, &config);
@@ -268,7 +297,7 @@ fn solver(args: &SolverArgs) -> Result<()> {
         let short = ReferenceConfig { adam: AdamConfig { steps: 5, ..AdamConfig::method() }, ..reference_config };
         reference::render_and_compare(&mesh_model, &map(&images[0].3)?, &camera, &config, &short)?; // warm-up
         let progress = bar("reference");
-        let mut out = Vec::with_capacity(args.images);
+        let mut out = Vec::with_capacity(total);
         for (_, truth, _, f) in &images {
             let t = Instant::now();
             let estimate = map(f)
@@ -316,6 +345,7 @@ fn solver(args: &SolverArgs) -> Result<()> {
     let disagreement =
         median(rows.iter().filter_map(both).map(|(a, b)| rotation_error(&a.rotation(), &b.rotation()).to_degrees()));
     let reference_lower = rows.iter().filter(|r| r.reference.loss < r.fast.loss).count();
+    let paired = paired_accuracy(&rows);
     let failures = |pick: fn(&Row) -> &Solved| rows.iter().filter(|r| pick(r).pose.is_none()).count();
     let commit = crate::synth_cmd::git_commit();
     let cpu = udapose_engine::runtime::cpu_model();
@@ -385,7 +415,8 @@ fn solver(args: &SolverArgs) -> Result<()> {
         "model_dir": args.model.display().to_string(),
         "data": args.data.display().to_string(),
         "domain": args.domain,
-        "split": args.split,
+        "split": args.split.join(","),
+        "paired": paired,
         "machine": {
             "cpu": cpu,
             "threads": threads,
@@ -416,6 +447,8 @@ fn solver(args: &SolverArgs) -> Result<()> {
          | reference (tch autograd render, Adam 300 steps) | {reference_ms:.1} | {ref_med:.1} | {ra:.3} | {rb:.3} | {rc:.1} |\n\n\
          **Speedup** (reference / udapose, mean ms per image): **{speedup:.0}×** ({speedup300:.0}× against udapose \
          at the reference's 300 steps).\n\n\
+         **Paired** (Acc@π/6 on the same images): udapose alone right on {only_u}, the reference alone on \
+         {only_r}; difference {pd:+.3} [{plo:+.3}, {phi:+.3}] (95% paired bootstrap).\n\n\
          **End to end** (backbone + udapose solver): {end_to_end:.1} ms per image, of which the backbone is \
          {backbone_ms:.1} ms (**{share:.0}%**); by medians, {e2e_median:.1} ms of which the backbone is \
          {backbone_median:.1} ms ({share_median:.0}%).\n\n\
@@ -429,7 +462,12 @@ fn solver(args: &SolverArgs) -> Result<()> {
         backbone = model.manifest.backbone,
         dim = solver_mesh.dim,
         domain = args.domain,
-        split = args.split,
+        split = args.split.join(","),
+        only_u = paired["udapose"]["only_udapose_right"],
+        only_r = paired["udapose"]["only_reference_right"],
+        pd = paired["udapose"]["acc_pi_6_difference"].as_f64().unwrap_or(f64::NAN),
+        plo = paired["udapose"]["ci95"][0].as_f64().unwrap_or(f64::NAN),
+        phi = paired["udapose"]["ci95"][1].as_f64().unwrap_or(f64::NAN),
         gh = grid.height,
         gw = grid.width,
         k = config.hypotheses,
