@@ -73,10 +73,13 @@ pub struct Args {
     adapt_flags: String,
 }
 
-/// The three trained variants besides the source model.
+/// The source model and the models derived from it per domain.
 #[derive(Clone, Copy, PartialEq)]
 enum Variant {
     Source,
+    /// Only the target BatchNorm statistics (AdaBN, 3DUDA's first step here): what the EM adds
+    /// on top of it is the difference to `Adapted`.
+    BatchnormOnly,
     Adapted,
     Oracle,
     Global,
@@ -86,6 +89,7 @@ impl Variant {
     fn name(self) -> &'static str {
         match self {
             Variant::Source => "source",
+            Variant::BatchnormOnly => "batchnorm_only",
             Variant::Adapted => "adapted",
             Variant::Oracle => "oracle",
             Variant::Global => "global_filter",
@@ -161,6 +165,13 @@ impl Report<'_> {
         cmd.extend(["--out".into(), adapted.display().to_string()]);
         cmd.extend(extra.iter().cloned());
         self.stage(&format!("adapt {domain}"), &adapted, &cmd.iter().map(String::as_str).collect::<Vec<_>>())?;
+        // One round with α = 1 and no backbone step leaves C and the weights as they were: the
+        // model differs from the source by its BatchNorm statistics alone.
+        let bn = self.model_dir(Variant::BatchnormOnly, domain).display().to_string();
+        let flags = ["--max-rounds", "1", "--no-backbone", "--alpha", "1"];
+        let mut cmd = vec!["adapt", "--model", &src, "--images", &images, "--out", &bn];
+        cmd.extend(flags);
+        self.stage(&format!("batchnorm {domain}"), Path::new(&bn), &cmd)?;
         if domain != "source" {
             let oracle = self.model_dir(Variant::Oracle, domain);
             let split = self.data.join(domain).join("adapt").display().to_string();
@@ -179,7 +190,7 @@ impl Report<'_> {
             cmd.extend(extra);
             self.stage(&format!("global {domain}"), &global, &cmd.iter().map(String::as_str).collect::<Vec<_>>())?;
         }
-        for v in [Variant::Source, Variant::Adapted, Variant::Oracle, Variant::Global] {
+        for v in [Variant::Source, Variant::BatchnormOnly, Variant::Adapted, Variant::Oracle, Variant::Global] {
             let model = self.model_dir(v, domain);
             if !model.join("manifest.json").is_file() {
                 continue;
@@ -233,8 +244,11 @@ impl Report<'_> {
              of the test images); gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, \
              n/a where oracle − source < {MIN_GAP}. With 300 test images an accuracy near 0.8 is known to about \
              ±0.045: differences inside the intervals are not improvements.\n\n\
-             | domain | source | adapted | oracle | global filter | gap closed | MedErr src → adapted (°) | adapt s |\n\
-             |---|---:|---:|---:|---:|---:|---:|---:|\n",
+             3DUDA here starts by replacing the backbone's BatchNorm statistics by the target images' own \
+             (AdaBN, label-free; `--no-target-bn` turns it off); *BN only* is that step alone, so what the EM's \
+             vertex and backbone updates add is adapted − BN only. The oracle gets the same step.\n\n\
+             | domain | source | BN only | adapted | oracle | global filter | gap closed | MedErr src → adapted (°) | adapt s |\n\
+             |---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
             self.args.profile,
             self.work.display(),
             crate::synth_cmd::git_commit(),
@@ -243,15 +257,20 @@ impl Report<'_> {
         );
         for domain in domains {
             let get = |v| self.evaluation(v, domain);
-            let (s, a, o, g) =
-                (get(Variant::Source), get(Variant::Adapted), get(Variant::Oracle), get(Variant::Global));
+            let (s, b, a, o, g) = (
+                get(Variant::Source),
+                get(Variant::BatchnormOnly),
+                get(Variant::Adapted),
+                get(Variant::Oracle),
+                get(Variant::Global),
+            );
             let gap = match (&s, &a, &o) {
                 (Some(s), Some(a), Some(o)) => gap_closed(s, a, o),
                 _ => (None, None),
             };
             let seconds = |what: &str| self.timings.get(&format!("{what} {domain}")).copied();
             let mut entry = json!({
-                "source": metrics(&s), "adapted": metrics(&a), "oracle": metrics(&o), "global_filter": metrics(&g),
+                "source": metrics(&s), "batchnorm_only": metrics(&b), "adapted": metrics(&a), "oracle": metrics(&o), "global_filter": metrics(&g),
                 "gap_closed": gap.0, "gap_closed_ci": gap.1,
                 "adapt_seconds": seconds("adapt"), "oracle_seconds": seconds("oracle"), "global_seconds": seconds("global"),
             });
@@ -270,8 +289,9 @@ impl Report<'_> {
             };
             let med = |e: &Option<Value>| e.as_ref().map_or("—".into(), |e| format!("{:.1}", f(&e["med_err_deg"])));
             md.push_str(&format!(
-                "| {domain} | {} | {} | {} | {} | {gap_cell} | {} → {} | {} |\n",
+                "| {domain} | {} | {} | {} | {} | {} | {gap_cell} | {} → {} | {} |\n",
                 cell(&s),
+                cell(&b),
                 cell(&a),
                 cell(&o),
                 cell(&g),
