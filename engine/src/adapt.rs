@@ -155,6 +155,9 @@ impl AdaptConfig {
     }
 }
 
+/// How many images [`RoundReport::source_fired_ratio`] looks at.
+pub const SOURCE_CHECK_IMAGES: usize = 64;
+
 /// What happens now, for progress bars.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -169,6 +172,11 @@ pub enum Phase {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct RoundReport {
     pub round: usize,
+    /// Round 1 with target BatchNorm statistics: the mean fired ratio of up to
+    /// [`SOURCE_CHECK_IMAGES`] of the images to the unchanged source model, i.e. how much the
+    /// images look like the category before anything adapts (AdaBN makes almost anything fire).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_fired_ratio: Option<f64>,
     /// Mean share of visible vertices that fire at each image's best pose, with the vertex
     /// features the round started with (round 1: the source model's).
     pub fired_ratio_before: f64,
@@ -236,6 +244,7 @@ pub fn finetune(
     progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
 ) -> Result<Adapted> {
     let mut run = Run::new(source, images, config)?;
+    run.target_batchnorm()?;
     if poses.len() != run.n {
         return Err(EngineError::InvalidInput(format!("{} poses for {} images", poses.len(), run.n)));
     }
@@ -327,9 +336,6 @@ impl<'a> Run<'a> {
         let mut vs = nn::VarStore::new(source.vs.device());
         let backbone = Backbone::new(vs.root(), source.manifest.backbone, source.manifest.feature_dim as i64);
         vs.copy(&source.vs).map_err(|e| EngineError::InvalidInput(format!("copying the backbone: {e}")))?;
-        if config.target_batchnorm {
-            backbone.reestimate_batchnorm(&vs, images, config.batch)?;
-        }
         let nm = &source.neural_mesh;
         let r = nm.mesh.vertices().len();
         let tau = match config.threshold {
@@ -364,9 +370,17 @@ impl<'a> Run<'a> {
         let mut previous: Option<Vec<Pose>> = None;
         let (mut calm, mut converged) = (0, false);
         let mut last = (Vec::new(), Vec::new());
+        let source_fired = if config.target_batchnorm {
+            let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), 1, progress)?;
+            let solved = self.solve_batch(&features)?;
+            self.target_batchnorm()?;
+            Some(mean(&solved.iter().map(|s| s.hypotheses[0].ratio()).collect::<Vec<_>>()))
+        } else {
+            None
+        };
         for round in 1..=config.max_rounds {
             let started = Instant::now();
-            let features = self.features(round, progress)?;
+            let features = self.features(self.n, round, progress)?;
             let (before, updated) = self.vertex_update(&features, round, progress)?;
             let solved = self.solve_all(&features, round, Phase::PseudoPoses, progress)?;
             let poses: Vec<Pose> = solved.iter().map(|s| s.pose).collect();
@@ -375,6 +389,7 @@ impl<'a> Run<'a> {
             let change = previous.as_ref().map(|p| pose_changes(p, &poses));
             let mut report = RoundReport {
                 round,
+                source_fired_ratio: source_fired.filter(|_| round == 1),
                 fired_ratio_before: before,
                 fired_ratio: mean(&ratios),
                 vertices_updated: updated,
@@ -467,20 +482,30 @@ impl<'a> Run<'a> {
             .collect()
     }
 
-    /// The current backbone's features of every image (eval mode), on the host.
+    /// The current backbone's features of the first `n` images (eval mode), on the host.
     fn features(
         &self,
+        n: usize,
         round: usize,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
     ) -> Result<Vec<(Vec<f32>, usize, usize)>> {
-        let mut out = Vec::with_capacity(self.n);
-        for start in (0..self.n).step_by(self.config.batch) {
-            let len = self.config.batch.min(self.n - start);
+        let mut out = Vec::with_capacity(n);
+        for start in (0..n).step_by(self.config.batch) {
+            let len = self.config.batch.min(n - start);
             let batch = self.images.narrow(0, start as i64, len as i64).to_device(self.vs.device());
             out.extend(estimator::features(&self.backbone, &batch)?);
-            step(progress, round, Phase::Features, out.len(), self.n)?;
+            step(progress, round, Phase::Features, out.len(), n)?;
         }
         Ok(out)
+    }
+
+    /// AdaBN (`config.target_batchnorm`): the target images' BatchNorm statistics replace the
+    /// source's.
+    fn target_batchnorm(&self) -> Result<()> {
+        if self.config.target_batchnorm {
+            self.backbone.reestimate_batchnorm(&self.vs, self.images, self.config.batch)?;
+        }
+        Ok(())
     }
 
     /// Render and compare on every image with the current `C`, and each hypothesis's matches.

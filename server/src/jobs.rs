@@ -692,11 +692,12 @@ impl Jobs {
                 if cancel.load(Ordering::Acquire) {
                     return ControlFlow::Break(());
                 }
+                // Judged by the source model's eyes: after AdaBN almost anything fires.
                 if let Event::Round(r) = event
                     && r.round == 1
-                    && r.fired_ratio_before < min_fired
+                    && r.source_fired_ratio.unwrap_or(r.fired_ratio_before) < min_fired
                 {
-                    mismatch = Some(r.fired_ratio_before);
+                    mismatch = Some(r.source_fired_ratio.unwrap_or(r.fired_ratio_before));
                     return ControlFlow::Break(());
                 }
                 if let Event::Round(r) = event {
