@@ -391,9 +391,7 @@ impl Backbone {
         crate::checkpoint::copy_checked(file, &trunk, found)?;
         Ok(TorchvisionLoad { loaded, ignored })
     }
-}
 
-impl Backbone {
     /// Replaces every BatchNorm's running mean and variance by their average over `images`
     /// (N×3×H×W RGB in [0, 1]) in batches of `batch` (AdaBN). Learned scales and shifts are
     /// kept. tch's BatchNorm only offers a fixed-momentum EMA, so each batch's statistics are
