@@ -80,11 +80,12 @@ pub struct GateConfig {
     /// Before any of the above, the target images must look like the category to the active
     /// model: at 3DUDA's first round, at least this share of visible vertices must fire on
     /// average to the unchanged model (`RoundReport::source_fired_ratio` of round 1, before the
-    /// BatchNorm step; else `fired_ratio_before`): 0.01. Judged after the BatchNorm step, a job
+    /// BatchNorm step; else `fired_ratio_before`): 0.02. Judged after the BatchNorm step, a job
     /// on colour fields fired at 0.12 after 5 rounds and passed the gate. Measured with the
     /// shipped model on the SynCar-OOD `standard` adapt splits: 0.027 (contrast, the lowest),
     /// 0.067 (fog), 0.089 (extreme-l2) up to 0.58 (data/report-standard.log); 60 images of no
-    /// car (colour fields and stripes, tests/tests/adapt.rs) give the quick model below 0.01.
+    /// car (colour fields and stripes, tests/tests/adapt.rs) give quick models 0.01–0.02 (at
+    /// 0.01 one passed the check). Both margins are thin; contrast is the one at risk.
     pub min_target_fired: f64,
     /// The solver both models are measured with.
     pub solver: SolverConfig,
@@ -98,7 +99,7 @@ impl Default for GateConfig {
             entropy_drop: 0.25,
             entropy_floor: 1.0,
             min_images: 4,
-            min_target_fired: 0.01,
+            min_target_fired: 0.02,
             solver: SolverConfig::default(),
         }
     }
