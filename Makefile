@@ -37,6 +37,9 @@ QUICK_EPOCHS := 6
 # versions need a newer rustc; it honours `If-None-Match: *` on PUT.
 S3S_FS_VERSION := 0.14.1
 S3S_FS := $(UDAPOSE_CACHE)/tools/s3s-fs-$(S3S_FS_VERSION)/bin/s3s-fs
+# The tests' scratch files (models, stores, server state: ~3 GB a run). A directory of the run's
+# own, wiped before and after, so that a failed or killed run cannot leave them to pile up in /tmp.
+TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
@@ -46,8 +49,10 @@ serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
 test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(S3S_FS) quick-data quick-model
-	UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) UDAPOSE_S3S_FS=$(S3S_FS) \
+	rm -rf $(TEST_TMP) && mkdir -p $(TEST_TMP)
+	TMPDIR=$(TEST_TMP) UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) UDAPOSE_S3S_FS=$(S3S_FS) \
 		cargo test $(CARGO_FLAGS) --workspace
+	rm -rf $(TEST_TMP)
 
 build: venv
 	cargo build $(CARGO_FLAGS) --workspace

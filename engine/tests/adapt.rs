@@ -6,7 +6,6 @@
 mod support;
 
 use std::ops::ControlFlow;
-use std::path::PathBuf;
 
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::Pose;
@@ -17,10 +16,9 @@ use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
 
 /// The shared random model, saved and loaded back (as a served model is).
 fn random_model(name: &str) -> checkpoint::Model {
-    let dir = std::env::temp_dir().join(format!("udapose-adapt-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let scratch = support::Scratch::new(&format!("adapt-{name}"));
     let model = support::random_model(5, [64, 160], "source-test");
-    let path: PathBuf = dir.join("model");
+    let path = scratch.path().join("model");
     checkpoint::save(&path, &model.manifest, &model.vs, &model.neural_mesh).unwrap();
     checkpoint::load(&path, Device::Cpu).unwrap()
 }

@@ -5,7 +5,7 @@
 //! `UDAPOSE_PYTHON` (default `python3`; under `make test` the project venv's, which has torch,
 //! torchvision and safetensors). It fails, never skips, when that Python lacks them.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use tch::nn;
@@ -14,26 +14,11 @@ use udapose_engine::EngineError;
 use udapose_engine::backbone::{self, Arch, Backbone, DecoderWidths};
 use udapose_engine::error::CheckpointError;
 
+mod support;
+use support::Scratch;
+
 const TOL: f64 = 1e-4;
 const F32: (Kind, Device) = (Kind::Float, Device::Cpu);
-
-/// A scratch directory under cargo's per-target tmp dir, removed on drop.
-struct Scratch(PathBuf);
-
-impl Scratch {
-    fn new(tag: &str) -> Scratch {
-        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().subsec_nanos();
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("backbone-{tag}-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        Scratch(dir)
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 fn build(arch: Arch) -> (nn::VarStore, Backbone) {
     let vs = nn::VarStore::new(Device::Cpu);
@@ -287,8 +272,8 @@ fn torchvision_files_load_into_the_trunk_only() {
             }
         }
     });
-    let f32_file = scratch.0.join("r18.safetensors");
-    let f16_file = scratch.0.join("r18-f16.safetensors");
+    let f32_file = scratch.path().join("r18.safetensors");
+    let f16_file = scratch.path().join("r18-f16.safetensors");
     torchvision_file(&src_vs, &f32_file, Kind::Float);
     torchvision_file(&src_vs, &f16_file, Kind::Half);
 
@@ -327,11 +312,11 @@ fn torchvision_files_load_into_the_trunk_only() {
 fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
     let scratch = Scratch::new("errors");
     let (mut vs, net) = build(Arch::ResNet18);
-    let good = scratch.0.join("good.safetensors");
+    let good = scratch.path().join("good.safetensors");
     torchvision_file(&vs, &good, Kind::Float);
     let tensors = Tensor::read_safetensors(&good).unwrap();
     let write = |name: &str, tensors: &[(String, Tensor)]| {
-        let path = scratch.0.join(name);
+        let path = scratch.path().join(name);
         Tensor::write_safetensors(tensors, &path).unwrap();
         path
     };
@@ -342,7 +327,7 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
         .map(|(n, t)| (n.clone(), if n == "conv1.weight" { t.zeros_like() } else { t.shallow_clone() }))
         .collect();
 
-    let missing = scratch.0.join("absent.safetensors");
+    let missing = scratch.path().join("absent.safetensors");
     match net.load_torchvision(&mut vs, &missing) {
         Err(EngineError::Checkpoint(CheckpointError::NotFound { path })) => assert!(path.contains("absent")),
         other => panic!("missing file: {other:?}"),
@@ -390,7 +375,7 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
 
     // A ResNet-34 file (same block type, more blocks) into a ResNet-18 trunk.
     let (r34_vs, _r34) = build(Arch::ResNet34);
-    let r34 = scratch.0.join("r34.safetensors");
+    let r34 = scratch.path().join("r34.safetensors");
     torchvision_file(&r34_vs, &r34, Kind::Float);
     match net.load_torchvision(&mut vs, &r34) {
         Err(EngineError::Checkpoint(CheckpointError::UnexpectedKeys { keys, .. })) => {
@@ -401,14 +386,14 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
 
     let bytes = std::fs::read(write("whole.safetensors", &changed)).unwrap();
     for cut in [bytes.len() / 2, 100, 3] {
-        let path = scratch.0.join(format!("truncated-{cut}.safetensors"));
+        let path = scratch.path().join(format!("truncated-{cut}.safetensors"));
         std::fs::write(&path, &bytes[..cut]).unwrap();
         match net.load_torchvision(&mut vs, &path) {
             Err(EngineError::Checkpoint(CheckpointError::Format { .. })) => {}
             other => panic!("truncated at {cut}: {other:?}"),
         }
     }
-    let garbage = scratch.0.join("garbage.safetensors");
+    let garbage = scratch.path().join("garbage.safetensors");
     std::fs::write(&garbage, b"this is not a safetensors file at all").unwrap();
     assert!(matches!(
         net.load_torchvision(&mut vs, &garbage),
@@ -445,7 +430,7 @@ fn pytorch_parity() {
         .arg(&script)
         .args(["--arch", "resnet18", "--arch", "resnet50", "--seed", "0", "--height", "64", "--width", "160"])
         .arg("--out")
-        .arg(&scratch.0)
+        .arg(scratch.path())
         .output()
         .unwrap_or_else(|e| panic!("could not run `{python}`: {e}; {INSTALL_HINT}"));
     let stderr = String::from_utf8_lossy(&out.stderr);
@@ -453,7 +438,7 @@ fn pytorch_parity() {
     print!("{}", String::from_utf8_lossy(&out.stdout));
 
     for arch in [Arch::ResNet18, Arch::ResNet50] {
-        let dir = scratch.0.join(arch.name());
+        let dir = scratch.path().join(arch.name());
         let read = |name: &str| -> std::collections::HashMap<String, Tensor> {
             Tensor::read_safetensors(dir.join(name)).unwrap().into_iter().collect()
         };

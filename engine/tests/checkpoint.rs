@@ -9,12 +9,8 @@ use udapose_engine::checkpoint::{self, BACKBONE_FILE, MANIFEST, MESH_FILE, Manif
 use udapose_engine::error::{CheckpointError, EngineError};
 use udapose_engine::mesh::TARGET_VERTICES;
 
-fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("udapose-ckpt-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+mod support;
+use support::Scratch;
 
 fn manifest(dtype: &str) -> Manifest {
     let cuboid = Cuboid::from_dimensions([0.434, 0.989, 0.279]).unwrap();
@@ -68,8 +64,9 @@ fn features(model: &checkpoint::Model) -> Tensor {
 
 #[test]
 fn f32_round_trip_is_exact() {
-    let parent = temp("f32");
-    let (dir, m, vs, c) = saved(&parent, "f32");
+    let scratch = Scratch::new("ckpt-f32");
+    let parent = scratch.path();
+    let (dir, m, vs, c) = saved(parent, "f32");
     let model = checkpoint::load(&dir, Device::Cpu).unwrap();
     assert_eq!(model.manifest.category, m.category);
     assert_eq!(model.manifest.files.len(), 2, "sha256 of both weight files");
@@ -87,11 +84,11 @@ fn f32_round_trip_is_exact() {
 
 #[test]
 fn f16_storage_loads_as_f32_close_to_the_original() {
-    let parent = temp("f16");
-    let (dir, _, vs, c) = saved(&parent, "f16");
+    let scratch = Scratch::new("ckpt-f16");
+    let parent = scratch.path();
+    let (dir, _, vs, c) = saved(parent, "f16");
     let size = |f: &str| std::fs::metadata(dir.join(f)).unwrap().len();
-    let f32_parent = temp("f16-ref");
-    let (f32_dir, ..) = saved(&f32_parent, "f32");
+    let (f32_dir, ..) = saved(&parent.join("f32"), "f32");
     assert!(size(BACKBONE_FILE) * 10 < std::fs::metadata(f32_dir.join(BACKBONE_FILE)).unwrap().len() * 6);
     let model = checkpoint::load(&dir, Device::Cpu).unwrap();
     assert_eq!(model.neural_mesh.vertex_features.kind(), Kind::Float);
@@ -111,8 +108,9 @@ fn load_err(dir: &Path) -> EngineError {
 
 #[test]
 fn bad_directories_give_clear_errors() {
-    let parent = temp("bad");
-    let (dir, ..) = saved(&parent, "f32");
+    let scratch = Scratch::new("ckpt-bad");
+    let parent = scratch.path();
+    let (dir, ..) = saved(parent, "f32");
     let copy = |name: &str| {
         let to = parent.join(name);
         std::fs::create_dir_all(&to).unwrap();

@@ -112,6 +112,7 @@ fn quick_report_adapts_combined_without_collapsing() {
     let (ok, log) = run_report(&data, &source, &work, &out);
     assert!(ok && !log.contains("=="), "{log}");
     assert_eq!(read(&out)["domains"], report["domains"]);
+    std::fs::remove_dir_all(&work).unwrap();
 }
 
 #[test]
@@ -143,4 +144,5 @@ fn adapt_and_finetune_explain_bad_arguments() {
     let (ok, log) = lab(&["finetune", "--model", s, "--data", dir.to_str().unwrap(), "--out", o, "--steps", "1"]);
     assert!(!ok && log.contains("not a split directory"), "{log}");
     assert!(!out.exists());
+    std::fs::remove_dir_all(&dir).unwrap();
 }

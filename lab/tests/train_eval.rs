@@ -77,6 +77,8 @@ fn eval_reports_every_requested_domain() {
         out.to_str().unwrap(),
     ]);
     assert!(missing.contains("manifest.json"), "{missing}");
+    std::fs::remove_file(out.with_extension("md")).unwrap();
+    std::fs::remove_file(out).unwrap();
 }
 
 fn lab_fails(args: &[&str]) -> String {
@@ -114,4 +116,7 @@ fn training_resumes_from_its_last_epoch() {
         lab_fails(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()])
             .contains("already exists")
     );
+    for dir in [out.clone(), out.with_extension("b"), work] {
+        std::fs::remove_dir_all(dir).unwrap();
+    }
 }

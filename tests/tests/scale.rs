@@ -39,6 +39,8 @@ struct S3 {
     url: String,
     endpoint: String,
     root: std::path::PathBuf,
+    /// The servers' `--cache-dir`s, removed with the store.
+    caches: std::path::PathBuf,
 }
 
 impl S3 {
@@ -60,7 +62,8 @@ impl S3 {
             assert!(Instant::now() < deadline, "s3s-fs did not listen on {addr}");
             thread::sleep(Duration::from_millis(50));
         }
-        S3 { child, url: "s3://fleet/udapose".into(), endpoint: format!("http://{addr}"), root }
+        let caches = scratch_dir("s3-caches");
+        S3 { child, url: "s3://fleet/udapose".into(), endpoint: format!("http://{addr}"), root, caches }
     }
 
     /// A server process of `role` on this store.
@@ -71,7 +74,7 @@ impl S3 {
             .env("AWS_ACCESS_KEY_ID", KEY)
             .env("AWS_SECRET_ACCESS_KEY", SECRET)
             .env("AWS_REGION", "us-east-1");
-        let cache = scratch_dir(&format!("{name}-cache")).display().to_string();
+        let cache = self.caches.join(name).display().to_string();
         let poll = POLL.as_secs().to_string();
         for arg in ["--s3-endpoint", &self.endpoint, "--s3-allow-http", "--role", role, "--poll", &poll]
             .into_iter()
@@ -98,6 +101,7 @@ impl Drop for S3 {
         let _ = self.child.kill();
         let _ = self.child.wait();
         let _ = fs::remove_dir_all(&self.root);
+        let _ = fs::remove_dir_all(&self.caches);
     }
 }
 

@@ -1,6 +1,8 @@
 //! Fixtures shared by the engine's integration tests.
 #![allow(dead_code)] // each test binary uses a different part
 
+use std::path::{Path, PathBuf};
+
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::Cuboid;
 use udapose_engine::backbone::{Arch, Backbone};
@@ -43,4 +45,27 @@ pub fn random_model(seed: i64, crop: [usize; 2], version: &str) -> Model {
         r_bar: Tensor::full([r], 0.9, (Kind::Float, Device::Cpu)),
     };
     Model { manifest, vs, backbone, neural_mesh }
+}
+
+/// A scratch directory under cargo's per-target tmp dir, removed on drop (a failed test's too:
+/// models are tens of MB, and every run would otherwise leave them behind).
+pub struct Scratch(PathBuf);
+
+impl Scratch {
+    pub fn new(tag: &str) -> Scratch {
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().subsec_nanos();
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("{tag}-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        Scratch(dir)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
