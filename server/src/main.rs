@@ -70,7 +70,7 @@ struct Args {
     #[arg(long)]
     s3_allow_http: bool,
     /// Where versions from a remote store are downloaded to be loaded (default: the system's
-    /// temporary directory).
+    /// temporary directory). The 3 last used per category are kept, older ones deleted.
     #[arg(long, value_name = "DIR")]
     cache_dir: Option<PathBuf>,
     /// `all`: one process does everything; `serve`: answers estimates and accepts target

@@ -25,7 +25,7 @@ use std::{
     future::Future,
     path::{Path, PathBuf},
     sync::Arc,
-    time::{SystemTime, UNIX_EPOCH},
+    time::{Duration, SystemTime, UNIX_EPOCH},
 };
 
 use object_store::{
@@ -38,6 +38,14 @@ use udapose_engine::checkpoint::{MANIFEST, Manifest};
 
 /// Who imports seeds and activates them.
 pub const SEED_ACTOR: &str = "seed";
+
+/// Downloaded versions kept per category in the cache (the newest by last use): the active one,
+/// a rollback target, a job's source. Older ones are deleted, and downloaded again if ever
+/// needed, so a replica that hot-swaps for months does not fill its disk.
+const CACHE_KEEP: usize = 3;
+/// A cached version used this recently is never deleted: a thread (or another process sharing
+/// the cache) may be loading it from there right now.
+const CACHE_GRACE: Duration = Duration::from_secs(600);
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -192,6 +200,10 @@ impl Store {
             let fs = LocalFileSystem::new_with_prefix(&root).map_err(|e| bad(&e))?.with_fsync(true);
             (Arc::new(fs) as Arc<dyn ObjectStore>, Some(root))
         };
+        Self::with_objects(objects, local, cache, url)
+    }
+
+    fn with_objects(objects: Arc<dyn ObjectStore>, local: Option<PathBuf>, cache: &Path, url: &str) -> Result<Self> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .thread_name("store-io")
@@ -413,6 +425,7 @@ impl Store {
         }
         let dir = self.shared.cache.join(category).join(version);
         if dir.join(MANIFEST).is_file() {
+            touch(&dir);
             return Ok(dir);
         }
         let prefix = format!("{}/{version}", Self::versions_key(category));
@@ -443,7 +456,36 @@ impl Store {
             }
         })();
         let _ = fs::remove_dir_all(&tmp);
-        result.map(|()| dir)
+        result?;
+        touch(&dir);
+        self.prune_cache(category);
+        Ok(dir)
+    }
+
+    /// Deletes the cached versions of `category` beyond the `CACHE_KEEP` last used, except any
+    /// used within `CACHE_GRACE`, and temporary directories that old (left by a crash). Best
+    /// effort: a failure only costs disk space, so it is logged.
+    fn prune_cache(&self, category: &str) {
+        let parent = self.shared.cache.join(category);
+        let Ok(entries) = fs::read_dir(&parent) else { return };
+        let (mut cached, mut old) = (Vec::new(), Vec::new());
+        let cutoff = SystemTime::now() - CACHE_GRACE;
+        for e in entries.filter_map(|e| e.ok()) {
+            let Some(used) = e.metadata().ok().and_then(|m| m.modified().ok()) else { continue };
+            if !e.file_name().to_string_lossy().starts_with('.') {
+                cached.push((used, e.path()));
+            } else if used < cutoff {
+                old.push(e.path());
+            }
+        }
+        cached.sort_by_key(|(used, _)| std::cmp::Reverse(*used));
+        old.extend(cached.into_iter().skip(CACHE_KEEP).filter(|(used, _)| *used < cutoff).map(|(_, dir)| dir));
+        for dir in old {
+            match fs::remove_dir_all(&dir) {
+                Ok(()) => tracing::info!(dir = %dir.display(), "removed from the version cache"),
+                Err(e) => tracing::warn!(dir = %dir.display(), "could not remove from the version cache: {e}"),
+            }
+        }
     }
 
     /// Writes a new version: `write` fills a local temporary directory, whose files are
@@ -527,6 +569,13 @@ impl Store {
 }
 
 /// A unique temporary sibling of `path`.
+/// Marks a cached version as just used (its directory's mtime), for `prune_cache`.
+fn touch(dir: &Path) {
+    if let Err(e) = fs::File::open(dir).and_then(|f| f.set_modified(SystemTime::now())) {
+        tracing::warn!(dir = %dir.display(), "could not mark a cached version as used: {e}");
+    }
+}
+
 fn temp_sibling(path: &Path) -> PathBuf {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("tmp");
     path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()))
@@ -569,6 +618,47 @@ mod tests {
 
     fn shipped() -> PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/car")
+    }
+
+    #[test]
+    fn a_remote_store_keeps_only_the_last_used_downloads() {
+        let cache = temp("cache");
+        let objects = Arc::new(object_store::memory::InMemory::new());
+        let store = Store::with_objects(objects, None, &cache, "memory://").unwrap();
+        // Tiny versions: the shipped manifest listing one small file.
+        let mut manifest: serde_json::Value =
+            serde_json::from_slice(&fs::read(shipped().join(MANIFEST)).unwrap()).unwrap();
+        manifest["files"] = serde_json::json!({ "w.bin": sha256_hex(b"w") });
+        for v in ["v1", "v2", "v3", "v4", "v5"] {
+            let prefix = format!("models/car/versions/{v}");
+            store.create(&format!("{prefix}/w.bin"), b"w".to_vec()).unwrap();
+            store.create(&format!("{prefix}/{MANIFEST}"), serde_json::to_vec(&manifest).unwrap()).unwrap();
+        }
+        let hours_ago = |h: u64| SystemTime::now() - Duration::from_secs(3600 * h);
+        let car = cache.join("udapose-versions/car");
+        let cached = || ["v1", "v2", "v3", "v4", "v5"].map(|v| car.join(v).is_dir());
+        for (v, h) in [("v1", 5), ("v2", 4), ("v3", 3)] {
+            store.version_dir("car", v).unwrap();
+            fs::File::open(car.join(v)).unwrap().set_modified(hours_ago(h)).unwrap();
+        }
+        // A cache hit marks v1 as used now, so v2 is the least recently used when v4 comes in.
+        store.version_dir("car", "v1").unwrap();
+        store.version_dir("car", "v4").unwrap();
+        assert_eq!(cached(), [true, false, true, true, false]);
+        // A crashed download's temporary directory goes too, once as old as the grace period.
+        let debris = car.join(".v9.1.2.tmp");
+        fs::create_dir(&debris).unwrap();
+        fs::File::open(&debris).unwrap().set_modified(hours_ago(1)).unwrap();
+        let dir = store.version_dir("car", "v5").unwrap();
+        assert_eq!(fs::read(dir.join("w.bin")).unwrap(), b"w");
+        assert_eq!(cached(), [true, false, false, true, true]);
+        assert!(!debris.exists());
+        // Downloaded again when needed; all used within the grace period, none is deleted,
+        // even beyond CACHE_KEEP.
+        store.version_dir("car", "v2").unwrap();
+        store.version_dir("car", "v3").unwrap();
+        assert_eq!(cached(), [true; 5]);
+        fs::remove_dir_all(&cache).unwrap();
     }
 
     #[test]
