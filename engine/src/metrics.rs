@@ -57,6 +57,35 @@ impl PoseMetrics {
 }
 
 /// 95% percentile-bootstrap intervals of the metrics (BENCHMARK.md §6): `[low, high]` each.
+/// A 95% percentile-bootstrap interval of `stat` over `n` paired observations (images scored
+/// by several models): `resamples` draws of `n` indices with replacement (ChaCha8 from `seed`),
+/// the same indices for every quantity `stat` compares. Draws where `stat` is undefined (None)
+/// are skipped; None when fewer than a tenth of the draws are left.
+pub fn paired_bootstrap(
+    n: usize,
+    resamples: usize,
+    seed: u64,
+    mut stat: impl FnMut(&[usize]) -> Option<f64>,
+) -> Option<[f64; 2]> {
+    use rand::{Rng, SeedableRng};
+    if n == 0 {
+        return None;
+    }
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut idx = vec![0; n];
+    let mut draws = Vec::with_capacity(resamples);
+    for _ in 0..resamples {
+        idx.iter_mut().for_each(|i| *i = rng.random_range(0..n));
+        draws.extend(stat(&idx));
+    }
+    if draws.is_empty() || draws.len() * 10 < resamples {
+        return None;
+    }
+    draws.sort_by(f64::total_cmp);
+    let at = |q: f64| draws[((draws.len() - 1) as f64 * q).round() as usize];
+    Some([at(0.025), at(0.975)])
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct MetricIntervals {
     pub acc_pi_6_ci: [f64; 2],

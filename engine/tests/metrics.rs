@@ -93,3 +93,19 @@ fn bootstrap_intervals_bracket_the_estimate_and_shrink_with_n() {
     assert!(small.acc_pi_6_ci[1] - small.acc_pi_6_ci[0] > 2.0 * width);
     assert_eq!(ci, MetricIntervals::bootstrap(&errors, 1000, 0).unwrap(), "fixed seed");
 }
+
+#[test]
+fn paired_bootstrap_resamples_the_same_images_for_every_model() {
+    use udapose_engine::metrics::paired_bootstrap;
+    // Model b is right wherever a is, plus on 30 more of 100 images: every draw favours b.
+    let a: Vec<bool> = (0..100).map(|i| i < 50).collect();
+    let b: Vec<bool> = (0..100).map(|i| i < 80).collect();
+    let acc = |h: &[bool], idx: &[usize]| idx.iter().filter(|&&i| h[i]).count() as f64 / idx.len() as f64;
+    let [lo, hi] = paired_bootstrap(100, 1000, 0, |idx| Some(acc(&b, idx) - acc(&a, idx))).unwrap();
+    assert!(0.0 < lo && lo < 0.3 && 0.3 < hi && hi < 0.45, "[{lo}, {hi}]");
+    // Fixed seed: the same interval again.
+    assert_eq!(paired_bootstrap(100, 1000, 0, |idx| Some(acc(&b, idx) - acc(&a, idx))).unwrap(), [lo, hi]);
+    // Undefined in most draws, or nothing to resample: no interval.
+    assert!(paired_bootstrap(100, 1000, 0, |idx| (idx[0] < 5).then_some(1.0)).is_none());
+    assert!(paired_bootstrap(0, 1000, 0, |_| Some(1.0)).is_none());
+}

@@ -18,6 +18,8 @@ use udapose_engine::checkpoint;
 use udapose_engine::estimator::{self, SolverMesh};
 use udapose_engine::solver::reference::{self, ReferenceConfig};
 use udapose_engine::solver::{AdamConfig, Estimate, FeatureMap, MeshModel, Optimizer, SolverConfig};
+
+use udapose_engine::metrics::paired_bootstrap;
 use udapose_engine::{Camera, Pose, PoseMetrics, pose_error, rotation_error};
 use udapose_lab::atomic::write_atomic;
 use udapose_lab::datasets::syncar::SyncarSplit;
@@ -151,19 +153,15 @@ fn median(v: impl Iterator<Item = f64>) -> f64 {
 /// images: how many only one of them gets right, and the difference with a 95% paired
 /// bootstrap interval (1000 resamples, seed 0).
 fn paired_accuracy(rows: &[Row]) -> serde_json::Value {
-    use rand::{Rng, SeedableRng};
     let hit = |s: &Solved| f64::from(u8::from(s.error < std::f64::consts::FRAC_PI_6));
     let compare = |pick: fn(&Row) -> &Solved| {
         let diff: Vec<f64> = rows.iter().map(|r| hit(pick(r)) - hit(&r.reference)).collect();
-        let mut rng = rand::rngs::StdRng::seed_from_u64(0);
-        let mut draws: Vec<f64> =
-            (0..1000).map(|_| mean((0..diff.len()).map(|_| diff[rng.random_range(0..diff.len())]))).collect();
-        draws.sort_by(f64::total_cmp);
+        let ci = paired_bootstrap(diff.len(), 1000, 0, |idx| Some(mean(idx.iter().map(|&i| diff[i]))));
         json!({
             "only_udapose_right": diff.iter().filter(|&&d| d > 0.0).count(),
             "only_reference_right": diff.iter().filter(|&&d| d < 0.0).count(),
             "acc_pi_6_difference": mean(diff.iter().copied()),
-            "ci95": [draws[25], draws[974]],
+            "ci95": ci,
         })
     };
     json!({"udapose": compare(|r| &r.fast), "udapose_method": compare(|r| &r.method)})

@@ -9,9 +9,8 @@ use std::process::Command;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
+use udapose_engine::metrics::paired_bootstrap;
 
 use crate::plot;
 
@@ -419,17 +418,9 @@ fn gap_closed(s: &Value, a: &Value, o: &Value) -> (Option<f64>, Option<[f64; 2]>
     if o0 - s0 < MIN_GAP {
         return (None, None);
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut gaps = Vec::with_capacity(1000);
-    for _ in 0..1000 {
-        let idx: Vec<usize> = (0..n).map(|_| rng.random_range(0..n)).collect();
-        let (s, a, o) = (acc(&hs, &idx), acc(&ha, &idx), acc(&ho, &idx));
-        if o - s > 0.0 {
-            gaps.push((a - s) / (o - s));
-        }
-    }
-    gaps.sort_by(f64::total_cmp);
-    let q = |p: f64| gaps[((gaps.len() - 1) as f64 * p).round() as usize];
-    let ci = (gaps.len() >= 100).then(|| [q(0.025), q(0.975)]);
+    let ci = paired_bootstrap(n, 1000, 0, |idx| {
+        let (s, a, o) = (acc(&hs, idx), acc(&ha, idx), acc(&ho, idx));
+        (o - s > 0.0).then(|| (a - s) / (o - s))
+    });
     (Some((a0 - s0) / (o0 - s0)), ci)
 }

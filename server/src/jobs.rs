@@ -695,9 +695,10 @@ impl Jobs {
                 // Judged by the source model's eyes: after AdaBN almost anything fires.
                 if let Event::Round(r) = event
                     && r.round == 1
-                    && r.source_fired_ratio.unwrap_or(r.fired_ratio_before) < min_fired
+                    && let seen = r.source_fired_ratio.unwrap_or(r.fired_ratio_before)
+                    && seen < min_fired
                 {
-                    mismatch = Some(r.source_fired_ratio.unwrap_or(r.fired_ratio_before));
+                    mismatch = Some(seen);
                     return ControlFlow::Break(());
                 }
                 if let Event::Round(r) = event {
