@@ -93,8 +93,9 @@ fn quick_report_adapts_combined_without_collapsing() {
     let run = &manifest["training"]["run"];
     let (first, last) = (run["fired_ratio_before"].as_f64().unwrap(), run["fired_ratio_after"].as_f64().unwrap());
     assert!(last > first, "fired ratio {first:.3} → {last:.3}");
-    let acc = |v: &str| d[v]["acc_pi_6"].as_f64().unwrap();
-    assert!(acc("adapted") >= acc("source") - 0.05, "adapted {:.3} < source {:.3}", acc("adapted"), acc("source"));
+    // Counted in images (60), so that a drop of exactly 3 is not failed by rounding.
+    let right = |v: &str| (d[v]["acc_pi_6"].as_f64().unwrap() * 60.0).round() as i64;
+    assert!(right("adapted") + 3 >= right("source"), "adapted {} < source {} of 60", right("adapted"), right("source"));
     assert_eq!(manifest["training"]["source_version"], read(&source.join("manifest.json"))["version"]);
 
     // The oracle had the adaptation's budget.

@@ -102,7 +102,8 @@ fn estimate(server: &Server, image: &QuickImage) -> Value {
 }
 
 /// Acc@π/6 over `images`, and the versions that answered.
-fn accuracy(server: &Server, images: &[QuickImage]) -> (f64, BTreeSet<String>) {
+/// How many of `images` are right at π/6, and the versions that answered.
+fn accuracy(server: &Server, images: &[QuickImage]) -> (usize, BTreeSet<String>) {
     let mut versions = BTreeSet::new();
     let hits = images
         .iter()
@@ -114,7 +115,7 @@ fn accuracy(server: &Server, images: &[QuickImage]) -> (f64, BTreeSet<String>) {
             geodesic(rotation(angles), rotation(image.truth)) < std::f64::consts::PI / 6.0
         })
         .count();
-    (hits as f64 / images.len() as f64, versions)
+    (hits, versions)
 }
 
 /// Estimates from `clients` threads until stopped; records every status and version.
@@ -233,11 +234,13 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     // Accuracy on the combined test split. The issue asks for "not lower"; the quick model
     // (retrained every run, Acc@π/6 0.3–0.45 on combined, ±0.12 over 60 images) moves by a few
     // images either way, so 3 images of 60 are allowed, as in lab/tests/adapt.rs: a collapse
-    // still fails it.
+    // still fails it. Counted in images: a fraction compared with `before - 0.05` failed a drop
+    // of exactly 3 (22/60 < 25/60 - 0.05 in floating point).
     let (after, versions_after) = accuracy(&server, &test_images);
     assert_eq!(versions_after, BTreeSet::from([version.clone()]));
-    assert!(after >= before - 0.05, "Acc@π/6 on combined fell from {before:.3} to {after:.3}");
-    eprintln!("combined Acc@π/6: {before:.3} before, {after:.3} after adaptation");
+    let n = test_images.len();
+    assert!(after + 3 >= before, "Acc@π/6 on combined fell from {before}/{n} to {after}/{n} right");
+    eprintln!("combined Acc@π/6: {before}/{n} right before, {after}/{n} after adaptation");
 
     // Rollback restores the seed exactly (same weights, --max-batch 1: bit-identical).
     let (ok, stdout, stderr) = udapose(&server, &["models", "rollback", "car", "--reason", "test"]);
