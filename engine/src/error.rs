@@ -24,7 +24,7 @@ pub enum EngineError {
     Checkpoint(#[from] CheckpointError),
 }
 
-/// Why a weights file could not be loaded (e.g. `Backbone::load_torchvision`). Nothing is
+/// Why a weights file could not be loaded (e.g. `Backbone::load_trunk`). Nothing is
 /// written into the model when any of these is returned.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum CheckpointError {

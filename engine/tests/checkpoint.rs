@@ -21,6 +21,7 @@ fn manifest(dtype: &str) -> Manifest {
         vertices: cuboid.mesh(TARGET_VERTICES).vertices().len(),
         cuboid,
         backbone: Arch::ResNet18,
+        input_normalization: None,
         feature_dim: 128,
         crop: [64, 160],
         clutter: 1,

@@ -21,6 +21,7 @@ pub fn random_model(seed: i64, crop: [usize; 2], version: &str) -> Model {
         vertices: cuboid.mesh(TARGET_VERTICES).vertices().len(),
         cuboid,
         backbone: Arch::ResNet18,
+        input_normalization: None,
         feature_dim: 128,
         crop,
         clutter: 1,
