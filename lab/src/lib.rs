@@ -3,6 +3,7 @@
 
 pub mod assets;
 pub mod atomic;
+pub mod augment;
 pub mod corruptions;
 pub mod datasets;
 pub mod loader;

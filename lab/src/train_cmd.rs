@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 use tch::nn::OptimizerConfig;
 use tch::{Device, Kind, Tensor, nn};
-use udapose_engine::backbone::{Arch, Backbone};
+use udapose_engine::backbone::{Arch, Backbone, DECODER_GROUP, TRUNK_GROUP};
 use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
 use udapose_engine::estimator::{self, SolverMesh, clutter_mean};
 use udapose_engine::mesh::TARGET_VERTICES;
@@ -19,6 +19,7 @@ use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
 use udapose_engine::train::{SourceTraining, TrainConfig, VertexStatistics};
 use udapose_engine::{Camera, Cuboid, PoseMetrics, pose_error};
+use udapose_lab::augment::Photometric;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::{Batch, Loader};
 
@@ -32,19 +33,39 @@ pub struct Args {
     /// The new model directory (must not exist).
     #[arg(long)]
     out: PathBuf,
-    /// Backbone trunk: resnet18, resnet34 or resnet50.
+    /// Backbone trunk: resnet18, resnet34, resnet50, efficientnet-lite0, -lite1 or -lite2.
     #[arg(long, default_value = "resnet18")]
     arch: Arch,
     #[arg(long, default_value_t = 30)]
     epochs: usize,
     #[arg(long, default_value_t = 16)]
     batch: usize,
-    /// Adam learning rate (weight decay 1e-4).
+    /// Adam learning rate of the decoder (weight decay 1e-4), the peak of the schedule.
     #[arg(long, default_value_t = 1e-3)]
     lr: f64,
+    /// Peak learning rate of the trunk (default: lr / 10 with --init-backbone, else lr): a
+    /// pretrained trunk moves slower than the decoder trained from scratch on top of it.
+    #[arg(long)]
+    trunk_lr: Option<f64>,
+    /// Learning-rate schedule: `cosine` (linear warm-up, then cosine decay to 1% of the peak
+    /// at the last step) or `constant` (the recipe of the first shipped model).
+    #[arg(long, value_enum, default_value_t = Schedule::Cosine)]
+    schedule: Schedule,
+    /// Warm-up steps of the cosine schedule.
+    #[arg(long, default_value_t = 200)]
+    warmup_steps: usize,
+    /// Run the stem and the first N stages of an EfficientNet-Lite trunk as fixed functions
+    /// (default: 2 with --init-backbone, else 0): ImageNet's low-level filters are kept and their
+    /// backward pass, a third of a CPU step, is skipped.
+    #[arg(long)]
+    freeze_stages: Option<usize>,
+    /// No photometric augmentation (colour jitter, grayscale, mild blur; see lab/src/augment.rs).
+    #[arg(long)]
+    no_augment: bool,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// torchvision ResNet weights exported by lab/scripts/export_torchvision.py.
+    /// Pretrained trunk weights: a torchvision ResNet exported by lab/scripts/export_torchvision.py
+    /// or EfficientNet-Lite converted by lab/scripts/efficientnet_lite.py (`make lite-weights`).
     #[arg(long)]
     init_backbone: Option<PathBuf>,
     /// Where per-epoch checkpoints go (default: `<out>.work`); a run resumes from the latest.
@@ -56,6 +77,26 @@ pub struct Args {
     /// Validation images per epoch (0: the whole val split).
     #[arg(long, default_value_t = 0)]
     val_images: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Schedule {
+    Cosine,
+    Constant,
+}
+
+/// The learning-rate factor at `step` of `total`: warm-up from 1/warmup to 1, then cosine
+/// down to 1%.
+fn lr_factor(schedule: Schedule, step: usize, total: usize, warmup: usize) -> f64 {
+    if schedule == Schedule::Constant {
+        return 1.0;
+    }
+    if step < warmup {
+        return (step + 1) as f64 / warmup as f64;
+    }
+    let t = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
+    0.01 + 0.99 * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
 }
 
 /// What a run has done so far; saved with each epoch's weights.
@@ -81,11 +122,13 @@ pub fn run(args: &Args) -> Result<()> {
     let mesh = cuboid.mesh(TARGET_VERTICES);
 
     let mut vs = nn::VarStore::new(device);
-    let backbone = Backbone::new(vs.root(), args.arch, 128);
+    let mut backbone = Backbone::new(vs.root(), args.arch, 128);
     if let Some(init) = &args.init_backbone {
-        let loaded = backbone.load_torchvision(&mut vs, init)?;
+        let loaded = backbone.load_trunk(&mut vs, init)?;
         eprintln!("initialised the trunk from {} ({} tensors)", init.display(), loaded.loaded);
     }
+    let freeze_stages = freeze_stages(args);
+    let frozen = backbone.freeze_stages(freeze_stages)?;
     let mut training = SourceTraining::new(TrainConfig::default(), mesh.clone(), camera, 128, device);
     let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("{}.work", args.out.display())));
     std::fs::create_dir_all(&work)?;
@@ -100,13 +143,23 @@ pub fn run(args: &Args) -> Result<()> {
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ progress.epoch as u64);
     // tch cannot save an optimiser's state: a resumed run starts Adam afresh.
     let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&vs, args.lr)?;
+    let trunk_lr = trunk_lr(args);
+    let augment = (!args.no_augment).then(Photometric::default);
+    let steps_per_epoch = loader.len().div_ceil(args.batch);
+    let total_steps = steps_per_epoch * args.epochs;
     for epoch in progress.epoch..args.epochs {
         let started = Instant::now();
         let bar = bar(loader.len() as u64, &format!("epoch {}/{}", epoch + 1, args.epochs));
         let mut loss_sum = (0.0, 0usize);
-        for batch in loader.epoch() {
+        for (i, batch) in loader.epoch().enumerate() {
             let batch = batch?;
-            let images = images_tensor(&batch, device);
+            let f = lr_factor(args.schedule, epoch * steps_per_epoch + i, total_steps, args.warmup_steps);
+            opt.set_lr_group(TRUNK_GROUP, trunk_lr * f);
+            opt.set_lr_group(DECODER_GROUP, args.lr * f);
+            let mut images = images_tensor(&batch, device);
+            if let Some(augment) = &augment {
+                images = augment.apply(&images, &mut rng);
+            }
             let features = backbone.forward_t(&udapose_engine::backbone::preprocess(&images)?, true);
             let (loss, stats) = training.step(&features, &batch.poses, &mut rng)?;
             opt.backward_step(&loss);
@@ -143,6 +196,7 @@ pub fn run(args: &Args) -> Result<()> {
         vertices: neural_mesh.mesh.vertices().len(),
         cuboid,
         backbone: args.arch,
+        input_normalization: Some(args.arch.input_normalization().into()),
         feature_dim: 128,
         crop,
         clutter: 1,
@@ -152,6 +206,8 @@ pub fn run(args: &Args) -> Result<()> {
             "data": {"profile": data["profile"], "seed": data["seed"], "commit": data["commit"]},
             "commit": crate::synth_cmd::git_commit(),
             "epochs": args.epochs, "batch": args.batch, "lr": args.lr, "seed": args.seed,
+            "trunk_lr": trunk_lr, "schedule": args.schedule, "warmup_steps": args.warmup_steps,
+            "augment": augment, "freeze_stages": freeze_stages, "frozen_blocks": frozen,
             "init_backbone": args.init_backbone.as_ref().map(|p| p.display().to_string()),
             "train_seconds": progress.seconds,
             "validation_curve": progress.curve,
@@ -163,6 +219,15 @@ pub fn run(args: &Args) -> Result<()> {
     checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
     eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
     Ok(())
+}
+
+fn freeze_stages(args: &Args) -> usize {
+    let pretrained_lite = args.init_backbone.is_some() && args.arch.lite_variant().is_some();
+    args.freeze_stages.unwrap_or(if pretrained_lite { 2 } else { 0 })
+}
+
+fn trunk_lr(args: &Args) -> f64 {
+    args.trunk_lr.unwrap_or(if args.init_backbone.is_some() { args.lr / 10.0 } else { args.lr })
 }
 
 fn bar(len: u64, prefix: &str) -> ProgressBar {
