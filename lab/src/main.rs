@@ -2,6 +2,7 @@
 
 mod adapt_cmd;
 mod bench_cmd;
+mod compare_cmd;
 mod corrupt_cmd;
 mod doctor;
 mod eval_cmd;
@@ -41,6 +42,9 @@ enum Command {
     Finetune(adapt_cmd::FinetuneArgs),
     /// The SynCar-OOD report: source, adapted, oracle and ablation per domain (cached stages).
     Report(report_cmd::Args),
+    /// Source models side by side: accuracy from their eval reports, size, τ_r, fired ratios and
+    /// costs measured in one run → reports/source-models.json and .md.
+    Compare(compare_cmd::Args),
     /// Benchmarks on real data: `bench solver` times udapose's solver against the autograd reference.
     Bench(bench_cmd::Args),
 }
@@ -55,6 +59,7 @@ fn main() -> anyhow::Result<()> {
         Command::Adapt(args) => adapt_cmd::run_adapt(&args),
         Command::Finetune(args) => adapt_cmd::run_finetune(&args),
         Command::Report(args) => report_cmd::run(&args),
+        Command::Compare(args) => compare_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
     }
 }
