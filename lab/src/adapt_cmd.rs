@@ -287,6 +287,8 @@ fn save(
             "backbone_steps": adapted.backbone_steps,
             "run": summary,
         }),
+        // f32: f16 would round the small updates of adaptation away (METHOD.md §7.6).
+        dtype: "f32".into(),
         metrics: serde_json::Value::Null,
         files: Default::default(),
         ..source.manifest.clone()

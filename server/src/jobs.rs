@@ -747,6 +747,8 @@ impl Jobs {
                     "converged": adapted.converged,
                     "backbone_steps": adapted.backbone_steps,
                 }),
+                // f32: f16 would round the small updates of adaptation away (METHOD.md §7.6).
+                dtype: "f32".into(),
                 metrics: serde_json::Value::Null,
                 files: Default::default(),
                 ..source.manifest.clone()
