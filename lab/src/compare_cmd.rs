@@ -22,8 +22,9 @@ use udapose_lab::loader::load_sample;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// NAME=MODEL_DIR=EVAL_JSON: a model and its `udapose-lab eval` report on the test splits
-    /// (repeatable; the order is the report's).
+    /// NAME=MODEL_DIR=EVAL_JSON[,EVAL_JSON...]: a model and its `udapose-lab eval` reports on
+    /// the test splits, a later report's domains replacing an earlier's (repeatable; the order is
+    /// the report's).
     #[arg(long = "model", required = true)]
     models: Vec<String>,
     /// The name of the shipped model.
@@ -78,10 +79,18 @@ fn open(spec: &str) -> Result<Entry> {
     let [name, dir, eval] = parts[..] else { bail!("--model {spec:?}: expected NAME=MODEL_DIR=EVAL_JSON") };
     let dir = PathBuf::from(dir);
     let model = checkpoint::load(&dir, tch::Device::Cpu).with_context(|| format!("loading {}", dir.display()))?;
-    let eval: Value = serde_json::from_str(&std::fs::read_to_string(eval).with_context(|| format!("reading {eval}"))?)?;
-    if eval["split"] != "test" {
-        bail!("{eval}: an eval report of the test splits is needed, this one is of {}", eval["split"]);
+    let mut domains = serde_json::Map::new();
+    let mut sources = Vec::new();
+    for file in eval.split(',') {
+        let report: Value =
+            serde_json::from_str(&std::fs::read_to_string(file).with_context(|| format!("reading {file}"))?)?;
+        if report["split"] != "test" {
+            bail!("{file}: an eval report of the test splits is needed, this one is of {}", report["split"]);
+        }
+        domains.extend(report["domains"].as_object().cloned().unwrap_or_default());
+        sources.push(json!({"file": file, "commit": report["commit"]}));
     }
+    let eval = json!({"domains": domains, "sources": sources});
     let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
     Ok(Entry { name: name.to_string(), dir, model, eval, solver_mesh })
 }
@@ -165,6 +174,7 @@ fn describe(e: &Entry, backbone_ms: f64, estimate_ms: f64) -> Result<Value> {
         "train_seconds": m.training["train_seconds"],
         "device": m.training["device"],
         "training_command": m.training["command"],
+        "eval_reports": e.eval["sources"],
         "domains": per_domain,
     }))
 }

@@ -1,6 +1,6 @@
 //! `udapose-lab eval`: Acc@π/6, Acc@π/18 and MedErr of a model on every domain of a dataset.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use serde_json::json;
@@ -46,11 +46,8 @@ pub fn run(args: &Args) -> Result<()> {
     let config = SolverConfig::default();
     // The fired-vertex diagnostic uses the adaptation's firing test.
     let threshold = AdaptConfig::default().threshold;
-    let names: Vec<String> = if args.domains.is_empty() {
-        all_domains().into_iter().map(|d| d.name).filter(|d| args.data.join(d).join(&args.split).is_dir()).collect()
-    } else {
-        args.domains.clone()
-    };
+    let names: Vec<String> =
+        if args.domains.is_empty() { domains_present(&args.data, &args.split) } else { args.domains.clone() };
     if names.is_empty() {
         bail!("no domain with a {} split under {}", args.split, args.data.display());
     }
@@ -132,6 +129,38 @@ pub fn run(args: &Args) -> Result<()> {
     udapose_lab::atomic::write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
     udapose_lab::atomic::write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     Ok(())
+}
+
+/// Every domain under `root` with a `split` directory, one or two levels deep (`fog`,
+/// `corrupt/fog`; BENCHMARK.md §4's layout): SynCar-OOD's own in their usual order, then any
+/// others by name.
+fn domains_present(root: &Path, split: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    let mut visit = |rel: String| {
+        if root.join(&rel).join(split).is_dir() {
+            found.push(rel);
+        }
+    };
+    for top in subdirs(root) {
+        visit(top.clone());
+        for sub in subdirs(&root.join(&top)) {
+            if sub != split {
+                visit(format!("{top}/{sub}"));
+            }
+        }
+    }
+    let known: Vec<String> = all_domains().into_iter().map(|d| d.name).collect();
+    found.sort_by_key(|d| (known.iter().position(|k| k == d).unwrap_or(usize::MAX), d.clone()));
+    found
+}
+
+fn subdirs(dir: &Path) -> Vec<String> {
+    let Ok(entries) = std::fs::read_dir(dir) else { return Vec::new() };
+    entries
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .collect()
 }
 
 /// CPU model and thread count, for reports.

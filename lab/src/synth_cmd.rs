@@ -180,8 +180,10 @@ fn package_version(package: &str) -> String {
     command_output("dpkg-query", &["-W", "-f=${Version}", package]).unwrap_or_else(|| "unknown".into())
 }
 
+/// The commit the binary was built from (embedded by build.rs), not that of the directory the
+/// command runs in.
 pub fn git_commit() -> String {
-    command_output("git", &["rev-parse", "--short", "HEAD"]).unwrap_or_else(|| "unknown".into())
+    env!("UDAPOSE_BUILD_COMMIT").to_string()
 }
 
 fn command_output(program: &str, args: &[&str]) -> Option<String> {

@@ -120,3 +120,40 @@ fn training_resumes_from_its_last_epoch() {
         std::fs::remove_dir_all(dir).unwrap();
     }
 }
+
+/// A dataset in BENCHMARK.md §4's layout whose domains have other names (one nested), and a
+/// command run outside any repository: eval finds every domain, and the report names the commit
+/// the binary was built from.
+#[test]
+fn eval_finds_domains_of_any_name_and_records_the_build_commit() {
+    let data = env_path("UDAPOSE_QUICK_DATA");
+    let root = tmp("other-names");
+    std::fs::create_dir_all(root.join("weather")).unwrap();
+    std::os::unix::fs::symlink(data.join("source"), root.join("day")).unwrap();
+    std::os::unix::fs::symlink(data.join("corrupt/fog"), root.join("weather/mist")).unwrap();
+    std::fs::copy(data.join("manifest.json"), root.join("manifest.json")).unwrap();
+    let out = root.join("eval.json");
+    let run = Command::new(LAB)
+        .current_dir(&root)
+        .args(["eval", "--model"])
+        .arg(env_path("UDAPOSE_QUICK_MODEL"))
+        .arg("--data")
+        .arg(&root)
+        .arg("--out")
+        .arg(&out)
+        .args(["--limit", "3"])
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let domains: Vec<&String> = report["domains"].as_object().unwrap().keys().collect();
+    assert_eq!(domains, ["day", "weather/mist"]);
+    let head = Command::new("git")
+        .args(["rev-parse", "--short", "HEAD"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    let head = String::from_utf8_lossy(&head.stdout).trim().to_string();
+    assert_eq!(report["commit"], head, "the report must name the binary's commit, not the cwd's");
+    std::fs::remove_dir_all(&root).unwrap();
+}
