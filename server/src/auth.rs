@@ -83,7 +83,7 @@ impl Tokens {
         if !self.enabled() {
             return Ok(());
         }
-        let Some(presented) = authorization.and_then(|h| h.strip_prefix("Bearer ")).map(str::trim) else {
+        let Some(presented) = authorization.and_then(bearer) else {
             return Err(ApiError::Unauthenticated("missing bearer token (Authorization: Bearer <token>)".into()));
         };
         // Every token is compared, so the time does not tell which one matched.
@@ -103,9 +103,30 @@ impl Tokens {
     }
 }
 
+/// The token of an `Authorization: Bearer <token>` value; the scheme is case-insensitive
+/// (RFC 7235 §2.1), so `bearer` and `BEARER` are accepted too.
+fn bearer(value: &str) -> Option<&str> {
+    let (scheme, token) = value.trim().split_once(char::is_whitespace)?;
+    let token = token.trim();
+    (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
+}
+
+/// The `WWW-Authenticate` challenge every 401 answer carries (RFC 7235 §4.1).
+pub const CHALLENGE: &str = "Bearer realm=\"udapose\"";
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_scheme_is_case_insensitive() {
+        assert_eq!(bearer("Bearer abc"), Some("abc"));
+        assert_eq!(bearer("bearer abc"), Some("abc"));
+        assert_eq!(bearer("BEARER   abc "), Some("abc"));
+        assert_eq!(bearer("Basic abc"), None);
+        assert_eq!(bearer("Bearer"), None);
+        assert_eq!(bearer("Bearerabc"), None);
+    }
 
     #[test]
     fn roles_include_the_lower_ones() {

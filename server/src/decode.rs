@@ -40,6 +40,13 @@ fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiErr
     let Some(format) = format else {
         return Err(ApiError::InvalidArgument("not a PNG, JPEG or WebP image".into()));
     };
+    if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
+        // The JPEG decoder fills a cut-off scan with grey and reports success: the pose of
+        // half a car would come back as if it were a whole one.
+        return Err(ApiError::InvalidArgument(
+            "cannot decode the JPEG image: it is truncated (no end-of-image marker after its last scan)".into(),
+        ));
+    }
     // The header's size first (reading it allocates nothing): a small file may claim a huge
     // image (decompression bomb), and the caller should hear which size was refused.
     let (w, h) =
@@ -56,6 +63,15 @@ fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiErr
     let image = reader.decode().map_err(|e| describe(e, format))?.into_rgb8();
     let (width, height) = (image.width() as usize, image.height() as usize);
     Ok(Pixels { rgb8: image.into_raw(), width, height })
+}
+
+/// Whether a JPEG's last scan (SOS, FF DA) is followed by the end-of-image marker (FF D9). Inside
+/// entropy-coded data every FF byte is stuffed (FF 00) or a restart marker (FF D0-D7), so an
+/// FF D9 after the last SOS can only be the real end; an embedded EXIF thumbnail comes before
+/// the main image's scans, and bytes appended after the EOI are allowed.
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    let Some(last_sos) = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]) else { return false };
+    bytes[last_sos..].windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
 fn too_big(w: u32, h: u32, limits: DecodeLimits) -> ApiError {
@@ -91,6 +107,28 @@ pub fn raw(width: u32, height: u32, rgb8: &[u8], limits: DecodeLimits) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn jpeg() -> Vec<u8> {
+        let img = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, 90]));
+        let mut out = Vec::new();
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Jpeg).unwrap();
+        out
+    }
+
+    #[test]
+    fn a_truncated_jpeg_is_refused_and_a_whole_one_decodes() {
+        let whole = jpeg();
+        assert!(decode(&whole, DecodeLimits::default()).is_ok());
+        let mut appended = whole.clone();
+        appended.extend_from_slice(b"trailing bytes after the end-of-image marker");
+        assert!(decode(&appended, DecodeLimits::default()).is_ok());
+        for cut in [whole.len() - 2, whole.len() * 3 / 4, whole.len() / 2] {
+            match decode(&whole[..cut], DecodeLimits::default()) {
+                Err(ApiError::InvalidArgument(m)) => assert!(m.contains("truncated"), "{m}"),
+                other => panic!("a JPEG cut at {cut} of {} bytes decoded: {:?}", whole.len(), other.is_ok()),
+            }
+        }
+    }
 
     fn png(width: u32, height: u32) -> Vec<u8> {
         let mut out = Vec::new();

@@ -42,11 +42,14 @@ pub async fn serve(
     health.set_serving::<ModelServiceServer<Api>>().await;
     health.set_serving::<PoseServiceServer<Api>>().await;
     health.set_serving::<AdaptationServiceServer<Api>>().await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(udapose_proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .context("building the gRPC reflection service")?;
+    // Both reflection versions: older grpcurl, Postman and Evans still speak only v1alpha.
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(udapose_proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection_v1 = reflection().build_v1().context("building the gRPC reflection service")?;
+    let reflection_v1alpha = reflection().build_v1alpha().context("building the gRPC reflection service")?;
     let max = service.limits.max_request_bytes;
     let api = Api { service };
     // tonic's default decoding limit (4 MiB) is below the documented 16 MiB.
@@ -61,11 +64,14 @@ pub async fn serve(
     builder
         .layer(tower::util::MapResponseLayer::new(too_large_is_resource_exhausted))
         .add_service(health_service)
-        .add_service(reflection)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
         .add_service(models)
         .add_service(poses)
         .add_service(adaptation)
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener), stop)
+        // TcpIncoming::from drops tonic's TCP_NODELAY default: without it each answer waits
+        // for the client's delayed ACK (~40 ms).
+        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), stop)
         .await
         .context("serving gRPC")
 }

@@ -24,6 +24,8 @@ use crate::{
     tls::Listener,
 };
 
+use axum::serve::ListenerExt;
+
 const INDEX_HTML: &str = include_str!("web/index.html");
 
 /// Serves until `stop` resolves, then lets in-flight requests finish.
@@ -34,7 +36,13 @@ pub async fn serve(
 ) -> Result<()> {
     let app = router(service);
     match listener {
-        Listener::Plain(l) => axum::serve(l, app).with_graceful_shutdown(stop).await,
+        // No Nagle: a small answer must not wait for the client's delayed ACK (~40 ms).
+        Listener::Plain(l) => {
+            let l = l.tap_io(|tcp| {
+                let _ = tcp.set_nodelay(true);
+            });
+            axum::serve(l, app).with_graceful_shutdown(stop).await
+        }
         Listener::Tls(l) => axum::serve(l, app).with_graceful_shutdown(stop).await,
     }
     .context("serving HTTP")
@@ -78,6 +86,9 @@ impl IntoResponse for HttpError {
         if let Some(after) = e.retry_after() {
             let secs = after.as_secs().max(1).to_string();
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_str(&secs).expect("digits"));
+        }
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static(crate::auth::CHALLENGE));
         }
         response
     }

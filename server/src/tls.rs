@@ -70,7 +70,11 @@ impl axum::serve::Listener for TlsListener {
     async fn accept(&mut self) -> (Self::Io, Self::Addr) {
         loop {
             let (stream, addr) = match self.tcp.accept().await {
-                Ok(s) => s,
+                Ok(s) => {
+                    // No Nagle: a small answer must not wait for the client's delayed ACK.
+                    let _ = s.0.set_nodelay(true);
+                    s
+                }
                 Err(e) => {
                     // Out of file descriptors and the like: back off instead of spinning.
                     tracing::warn!("accepting a connection: {e}");

@@ -76,9 +76,16 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
     };
 
     let truncated = &good[..good.len() / 2];
+    let jpeg = {
+        let img = image::load_from_memory(&good).unwrap().to_rgb8();
+        let mut out = Vec::new();
+        img.write_to(&mut Cursor::new(&mut out), image::ImageFormat::Jpeg).unwrap();
+        out
+    };
     let cases: Vec<(&str, Vec<u8>, u16, &str, &str)> = vec![
         ("empty body", Vec::new(), 400, "INVALID_ARGUMENT", "empty image"),
         ("truncated PNG", truncated.to_vec(), 400, "INVALID_ARGUMENT", "cannot decode the PNG"),
+        ("truncated JPEG", jpeg[..jpeg.len() * 2 / 3].to_vec(), 400, "INVALID_ARGUMENT", "JPEG image: it is truncated"),
         ("decompression bomb", bomb(), 400, "INVALID_ARGUMENT", "30000x30000"),
         ("random bytes", random_bytes(5000), 400, "INVALID_ARGUMENT", "not a PNG, JPEG or WebP"),
         ("1x1 image", png(1, 1), 400, "INVALID_ARGUMENT", "image is 1x1 px"),
@@ -97,7 +104,13 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
     expect(post("/v1/pose/car", &vec![0u8; LIMIT + 1]), 413, "RESOURCE_EXHAUSTED", "over the limit");
     // A deadline shorter than the batching delay (5 ms) passes before the estimate starts.
     expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
-    expect(server.request("POST", "/v1/pose/car", &[], &good), 401, "UNAUTHENTICATED", "missing bearer token");
+    let missing = server.request("POST", "/v1/pose/car", &[], &good);
+    assert_eq!(missing.header("www-authenticate"), Some("Bearer realm=\"udapose\""), "401 without a challenge");
+    expect(missing, 401, "UNAUTHENTICATED", "missing bearer token");
+    // The scheme is case-insensitive (RFC 7235).
+    let lower = format!("bearer {TOKEN}");
+    let ok = server.request("POST", "/v1/pose/car", &[("Authorization", &lower)], &good);
+    assert_eq!(ok.status, 200, "lower-case scheme refused: {}", ok.body);
     let wrong = server.request("POST", "/v1/pose/car", &[("Authorization", "Bearer nope")], &good);
     expect(wrong, 401, "UNAUTHENTICATED", "invalid bearer token");
     expect(server.request("GET", "/v1/models", &[], b""), 401, "UNAUTHENTICATED", "missing bearer token");

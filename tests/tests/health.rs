@@ -52,9 +52,36 @@ async fn check_grpc(endpoint: &str) {
     let response = HealthClient::new(channel.clone()).check(request).await.expect("Health/Check");
     assert_eq!(response.into_inner().status, ServingStatus::Serving as i32);
 
-    let services = reflected_services(channel).await;
+    let services = reflected_services(channel.clone()).await;
     for expected in ["udapose.v1.ModelService", "grpc.health.v1.Health"] {
         assert!(services.iter().any(|s| s == expected), "{expected} not in {services:?}");
+    }
+    // Older tools (grpcurl before 1.8, Postman, Evans) speak only v1alpha.
+    let services = reflected_services_v1alpha(channel).await;
+    for expected in ["udapose.v1.PoseService", "udapose.v1.ModelService", "grpc.health.v1.Health"] {
+        assert!(services.iter().any(|s| s == expected), "v1alpha: {expected} not in {services:?}");
+    }
+}
+
+/// Service names the server lists over gRPC reflection v1alpha.
+async fn reflected_services_v1alpha(channel: Channel) -> Vec<String> {
+    use tonic_reflection::pb::v1alpha::{
+        ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
+        server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
+    };
+    let request = ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut responses = ServerReflectionClient::new(channel)
+        .server_reflection_info(tokio_stream::once(request))
+        .await
+        .expect("v1alpha ServerReflectionInfo")
+        .into_inner();
+    let response = responses.message().await.expect("reflection reply").expect("one reply");
+    match response.message_response {
+        Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect(),
+        other => panic!("unexpected v1alpha reflection reply: {other:?}"),
     }
 }
 
