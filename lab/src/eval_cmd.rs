@@ -158,7 +158,7 @@ fn subdirs(dir: &Path) -> Vec<String> {
     let Ok(entries) = std::fs::read_dir(dir) else { return Vec::new() };
     entries
         .filter_map(|e| e.ok())
-        .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+        .filter(|e| e.path().is_dir()) // follows symlinks: a domain may be a link to another disk
         .filter_map(|e| e.file_name().to_str().map(str::to_string))
         .collect()
 }
