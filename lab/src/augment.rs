@@ -60,10 +60,10 @@ impl Photometric {
         let n = images.size()[0];
         let mut out = Vec::with_capacity(n as usize);
         for i in 0..n {
-            let mut x = images.narrow(0, i, 1);
             let mut factor = |range: f64| 1.0 + rng.random_range(-range..=range);
             let (b, c, s) = (factor(self.brightness), factor(self.contrast), factor(self.saturation));
-            x = x * b;
+            // A new tensor, never `*=` on the narrowed view: that would write into `images`.
+            let mut x = images.narrow(0, i, 1) * b;
             let mean = luma(&x).mean(Kind::Float);
             x = (x - &mean) * c + &mean;
             let gray = luma(&x);
