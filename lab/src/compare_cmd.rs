@@ -107,8 +107,8 @@ fn time_models(entries: &[Entry], data: &Path, n: usize) -> Result<Vec<(f64, f64
     for i in 0..n.min(split.len()) {
         let (pixels, _, h, w, _) = load_sample(&split, i)?;
         let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+        let camera = Camera::for_crop(h, w)?;
         for (e, (backbone, total)) in entries.iter().zip(samples.iter_mut()) {
-            let camera = Camera::for_crop(h, w)?;
             let started = Instant::now();
             let features = estimator::features(&e.model.backbone, &image)?;
             let after_backbone = started.elapsed();

@@ -9,10 +9,6 @@ mod support;
 use support::Server;
 use tonic::transport::{Channel, Endpoint};
 use tonic_health::pb::{HealthCheckRequest, health_check_response::ServingStatus, health_client::HealthClient};
-use tonic_reflection::pb::v1::{
-    ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
-    server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
-};
 
 #[test]
 fn server_without_models_is_live_but_not_ready() {
@@ -63,42 +59,31 @@ async fn check_grpc(endpoint: &str) {
     }
 }
 
-/// Service names the server lists over gRPC reflection v1alpha.
-async fn reflected_services_v1alpha(channel: Channel) -> Vec<String> {
-    use tonic_reflection::pb::v1alpha::{
-        ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
-        server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
+/// `async fn $name(channel) -> Vec<String>`: the service names the server lists over one
+/// version of gRPC reflection (v1 and v1alpha have the same messages in different packages).
+macro_rules! reflected_services {
+    ($name:ident, $pb:path) => {
+        async fn $name(channel: Channel) -> Vec<String> {
+            use $pb::{
+                ServerReflectionRequest, server_reflection_client::ServerReflectionClient,
+                server_reflection_request::MessageRequest, server_reflection_response::MessageResponse,
+            };
+            let request = ServerReflectionRequest {
+                host: String::new(),
+                message_request: Some(MessageRequest::ListServices(String::new())),
+            };
+            let mut responses = ServerReflectionClient::new(channel)
+                .server_reflection_info(tokio_stream::once(request))
+                .await
+                .expect("ServerReflectionInfo")
+                .into_inner();
+            let response = responses.message().await.expect("reflection reply").expect("one reply");
+            match response.message_response {
+                Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect(),
+                other => panic!("unexpected reflection reply: {other:?}"),
+            }
+        }
     };
-    let request = ServerReflectionRequest {
-        host: String::new(),
-        message_request: Some(MessageRequest::ListServices(String::new())),
-    };
-    let mut responses = ServerReflectionClient::new(channel)
-        .server_reflection_info(tokio_stream::once(request))
-        .await
-        .expect("v1alpha ServerReflectionInfo")
-        .into_inner();
-    let response = responses.message().await.expect("reflection reply").expect("one reply");
-    match response.message_response {
-        Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect(),
-        other => panic!("unexpected v1alpha reflection reply: {other:?}"),
-    }
 }
-
-/// Service names the server lists over gRPC reflection (v1).
-async fn reflected_services(channel: Channel) -> Vec<String> {
-    let request = ServerReflectionRequest {
-        host: String::new(),
-        message_request: Some(MessageRequest::ListServices(String::new())),
-    };
-    let mut responses = ServerReflectionClient::new(channel)
-        .server_reflection_info(tokio_stream::once(request))
-        .await
-        .expect("ServerReflectionInfo")
-        .into_inner();
-    let response = responses.message().await.expect("reflection reply").expect("one reply");
-    match response.message_response {
-        Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect(),
-        other => panic!("unexpected reflection reply: {other:?}"),
-    }
-}
+reflected_services!(reflected_services, tonic_reflection::pb::v1);
+reflected_services!(reflected_services_v1alpha, tonic_reflection::pb::v1alpha);
