@@ -39,14 +39,6 @@ use udapose_engine::checkpoint::{MANIFEST, Manifest};
 /// Who imports seeds and activates them.
 pub const SEED_ACTOR: &str = "seed";
 
-/// Downloaded versions kept per category in the cache (the newest by last use): the active one,
-/// a rollback target, a job's source. Older ones are deleted, and downloaded again if ever
-/// needed, so a replica that hot-swaps for months does not fill its disk.
-const CACHE_KEEP: usize = 3;
-/// A cached version used this recently is never deleted: a thread (or another process sharing
-/// the cache) may be loading it from there right now.
-const CACHE_GRACE: Duration = Duration::from_secs(600);
-
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     #[error("{key}: {source}")]
@@ -416,78 +408,6 @@ impl Store {
         self.activate(category, &previous, actor, reason, Some(expected_generation.unwrap_or(generation)), None)
     }
 
-    /// A local directory holding the complete version, to load it from: the version itself in
-    /// a local store; a verified download (files checked against the manifest's sha256, the
-    /// manifest written last, then renamed into place) from a remote one.
-    pub fn version_dir(&self, category: &str, version: &str) -> Result<PathBuf> {
-        if let Some(root) = &self.shared.local {
-            return Ok(root.join(Self::versions_key(category)).join(version));
-        }
-        let dir = self.shared.cache.join(category).join(version);
-        if dir.join(MANIFEST).is_file() {
-            touch(&dir);
-            return Ok(dir);
-        }
-        let prefix = format!("{}/{version}", Self::versions_key(category));
-        let manifest_key = format!("{prefix}/{MANIFEST}");
-        let manifest_bytes = self
-            .read(&manifest_key)?
-            .ok_or_else(|| StoreError::UnknownVersion { category: category.into(), version: version.into() })?;
-        let manifest: Manifest = serde_json::from_slice(&manifest_bytes).map_err(|e| corrupt(&manifest_key, e))?;
-        let tmp = temp_sibling(&dir);
-        fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
-        let result = (|| {
-            for (file, sha) in &manifest.files {
-                let key = format!("{prefix}/{file}");
-                if file.contains('/') || file.starts_with('.') {
-                    return Err(corrupt(&key, "not a plain file name"));
-                }
-                let bytes = self.read(&key)?.ok_or_else(|| corrupt(&key, "listed in the manifest but missing"))?;
-                if &sha256_hex(&bytes) != sha {
-                    return Err(corrupt(&key, "does not match its sha256 in the manifest"));
-                }
-                fs::write(tmp.join(file), bytes).map_err(io_err(&tmp))?;
-            }
-            fs::write(tmp.join(MANIFEST), &manifest_bytes).map_err(io_err(&tmp))?;
-            match fs::rename(&tmp, &dir) {
-                Ok(()) => Ok(()),
-                Err(_) if dir.join(MANIFEST).is_file() => Ok(()), // another thread got it first
-                Err(e) => Err(io_err(&dir)(e)),
-            }
-        })();
-        let _ = fs::remove_dir_all(&tmp);
-        result?;
-        touch(&dir);
-        self.prune_cache(category);
-        Ok(dir)
-    }
-
-    /// Deletes the cached versions of `category` beyond the `CACHE_KEEP` last used, except any
-    /// used within `CACHE_GRACE`, and temporary directories that old (left by a crash). Best
-    /// effort: a failure only costs disk space, so it is logged.
-    fn prune_cache(&self, category: &str) {
-        let parent = self.shared.cache.join(category);
-        let Ok(entries) = fs::read_dir(&parent) else { return };
-        let (mut cached, mut old) = (Vec::new(), Vec::new());
-        let cutoff = SystemTime::now() - CACHE_GRACE;
-        for e in entries.filter_map(|e| e.ok()) {
-            let Some(used) = e.metadata().ok().and_then(|m| m.modified().ok()) else { continue };
-            if !e.file_name().to_string_lossy().starts_with('.') {
-                cached.push((used, e.path()));
-            } else if used < cutoff {
-                old.push(e.path());
-            }
-        }
-        cached.sort_by_key(|(used, _)| std::cmp::Reverse(*used));
-        old.extend(cached.into_iter().skip(CACHE_KEEP).filter(|(used, _)| *used < cutoff).map(|(_, dir)| dir));
-        for dir in old {
-            match fs::remove_dir_all(&dir) {
-                Ok(()) => tracing::info!(dir = %dir.display(), "removed from the version cache"),
-                Err(e) => tracing::warn!(dir = %dir.display(), "could not remove from the version cache: {e}"),
-            }
-        }
-    }
-
     /// Writes a new version: `write` fills a local temporary directory, whose files are
     /// uploaded create-only, the manifest last, so the version appears complete or not at all.
     /// The version id belongs to its writer (a job): leftovers of its own crashed attempt are
@@ -569,13 +489,6 @@ impl Store {
 }
 
 /// A unique temporary sibling of `path`.
-/// Marks a cached version as just used (its directory's mtime), for `prune_cache`.
-fn touch(dir: &Path) {
-    if let Err(e) = fs::File::open(dir).and_then(|f| f.set_modified(SystemTime::now())) {
-        tracing::warn!(dir = %dir.display(), "could not mark a cached version as used: {e}");
-    }
-}
-
 fn temp_sibling(path: &Path) -> PathBuf {
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("tmp");
     path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), nanos()))
@@ -606,140 +519,6 @@ pub(crate) fn nanos() -> u128 {
     SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos())
 }
 
+mod cache;
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn temp(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("udapose-store-{name}-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        dir
-    }
-
-    fn shipped() -> PathBuf {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/car")
-    }
-
-    #[test]
-    fn a_remote_store_keeps_only_the_last_used_downloads() {
-        let cache = temp("cache");
-        let objects = Arc::new(object_store::memory::InMemory::new());
-        let store = Store::with_objects(objects, None, &cache, "memory://").unwrap();
-        // Tiny versions: the shipped manifest listing one small file.
-        let mut manifest: serde_json::Value =
-            serde_json::from_slice(&fs::read(shipped().join(MANIFEST)).unwrap()).unwrap();
-        manifest["files"] = serde_json::json!({ "w.bin": sha256_hex(b"w") });
-        for v in ["v1", "v2", "v3", "v4", "v5"] {
-            let prefix = format!("models/car/versions/{v}");
-            store.create(&format!("{prefix}/w.bin"), b"w".to_vec()).unwrap();
-            store.create(&format!("{prefix}/{MANIFEST}"), serde_json::to_vec(&manifest).unwrap()).unwrap();
-        }
-        let hours_ago = |h: u64| SystemTime::now() - Duration::from_secs(3600 * h);
-        let car = cache.join("udapose-versions/car");
-        let cached = || ["v1", "v2", "v3", "v4", "v5"].map(|v| car.join(v).is_dir());
-        for (v, h) in [("v1", 5), ("v2", 4), ("v3", 3)] {
-            store.version_dir("car", v).unwrap();
-            fs::File::open(car.join(v)).unwrap().set_modified(hours_ago(h)).unwrap();
-        }
-        // A cache hit marks v1 as used now, so v2 is the least recently used when v4 comes in.
-        store.version_dir("car", "v1").unwrap();
-        store.version_dir("car", "v4").unwrap();
-        assert_eq!(cached(), [true, false, true, true, false]);
-        // A crashed download's temporary directory goes too, once as old as the grace period.
-        let debris = car.join(".v9.1.2.tmp");
-        fs::create_dir(&debris).unwrap();
-        fs::File::open(&debris).unwrap().set_modified(hours_ago(1)).unwrap();
-        let dir = store.version_dir("car", "v5").unwrap();
-        assert_eq!(fs::read(dir.join("w.bin")).unwrap(), b"w");
-        assert_eq!(cached(), [true, false, false, true, true]);
-        assert!(!debris.exists());
-        // Downloaded again when needed; all used within the grace period, none is deleted,
-        // even beyond CACHE_KEEP.
-        store.version_dir("car", "v2").unwrap();
-        store.version_dir("car", "v3").unwrap();
-        assert_eq!(cached(), [true; 5]);
-        fs::remove_dir_all(&cache).unwrap();
-    }
-
-    #[test]
-    fn category_names_cannot_escape_the_store() {
-        for good in ["car", "bus-2", "a_b", "0"] {
-            assert!(valid_category(good), "{good}");
-        }
-        for bad in ["", "..", "../etc", "car/../x", "Car", "-car", "car.json", "a b", &"x".repeat(65)] {
-            assert!(!valid_category(bad), "{bad:?}");
-        }
-    }
-
-    #[test]
-    fn a_seed_is_imported_once_and_activated_as_generation_zero() {
-        let root = temp("seed");
-        let store = Store::open(&root).unwrap();
-        store.probe().unwrap();
-        let version = store.import_seed("car", &shipped()).unwrap();
-        assert!(version.starts_with("seed-") && version.len() == 17, "{version}");
-        assert_eq!(store.import_seed("car", &shipped()).unwrap(), version);
-        let (generation, head) = store.head("car").unwrap().unwrap();
-        assert_eq!(
-            (generation, head.version.as_str(), head.previous, head.actor.as_str()),
-            (0, &*version, None, "seed")
-        );
-        assert_eq!(store.manifest("car", &version).unwrap().crop, [128, 320]);
-        assert_eq!(store.categories().unwrap(), ["car"]);
-        assert_eq!(store.versions("car").unwrap(), std::slice::from_ref(&version));
-        assert!(root.join("models/car/activations/00000000000000000000.json").is_file());
-        assert!(store.version_dir("car", &version).unwrap().join(MANIFEST).is_file());
-        fs::remove_dir_all(&root).unwrap();
-    }
-
-    #[test]
-    fn activation_is_create_only_and_checks_the_expected_generation() {
-        let root = temp("activate");
-        let store = Store::open(&root).unwrap();
-        let seed = store.import_seed("car", &shipped()).unwrap();
-        // A second version (same files, another name) to switch between.
-        store.upload_dir("models/car/versions/v2", &shipped(), None).unwrap();
-        assert_eq!(store.activate("car", "v2", "test", "try", Some(0), None).unwrap(), 1);
-        let err = store.activate("car", &seed, "test", "stale", Some(0), None).unwrap_err();
-        assert!(matches!(err, StoreError::Conflict { expected: 0, found: 1, .. }), "{err}");
-        assert!(matches!(store.activate("car", "nope", "t", "r", None, None), Err(StoreError::UnknownVersion { .. })));
-        assert_eq!(store.rollback("car", "test", "back", None).unwrap(), 2);
-        let (generation, head) = store.head("car").unwrap().unwrap();
-        assert_eq!((generation, head.version, head.previous.as_deref()), (2, seed.clone(), Some("v2")));
-        // A restart does not re-activate the seed over a newer activation... unless it is a seed.
-        store.import_seed("car", &shipped()).unwrap();
-        assert_eq!(store.head("car").unwrap().unwrap().0, 2);
-        // create never overwrites.
-        assert!(store.create("x.json", b"1".to_vec()).unwrap());
-        assert!(!store.create("x.json", b"2".to_vec()).unwrap());
-        assert_eq!(store.read("x.json").unwrap().unwrap(), b"1");
-        fs::remove_dir_all(&root).unwrap();
-    }
-
-    #[test]
-    fn a_version_without_its_manifest_is_debris_and_is_replaced() {
-        let root = temp("debris");
-        let store = Store::open(&root).unwrap();
-        store.create("models/car/versions/v3/mesh.safetensors", b"partial".to_vec()).unwrap();
-        assert!(store.versions("car").unwrap().is_empty());
-        assert!(matches!(store.manifest("car", "v3"), Err(StoreError::UnknownVersion { .. })));
-        store
-            .put_version("car", "v3", |dir| {
-                fs::create_dir(dir).unwrap();
-                for e in fs::read_dir(shipped()).unwrap() {
-                    let p = e.unwrap().path();
-                    fs::copy(&p, dir.join(p.file_name().unwrap())).unwrap();
-                }
-                Ok(())
-            })
-            .unwrap();
-        assert_eq!(store.versions("car").unwrap(), ["v3"]);
-        let dir = store.version_dir("car", "v3").unwrap();
-        assert_eq!(
-            fs::read(dir.join("mesh.safetensors")).unwrap(),
-            fs::read(shipped().join("mesh.safetensors")).unwrap()
-        );
-        assert!(store.put_version("car", "v3", |_| Ok(())).is_err(), "versions are immutable");
-        fs::remove_dir_all(&root).unwrap();
-    }
-}
+mod tests;
