@@ -13,13 +13,13 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use tch::nn::OptimizerConfig;
-use tch::{Kind, Tensor, nn};
+use tch::{Tensor, nn};
 
 use crate::backbone::{Backbone, preprocess};
 use crate::camera::{Camera, Pose};
 use crate::checkpoint::{Model, NeuralMesh};
 use crate::error::{EngineError, Result};
-use crate::estimator::{self, SolverMesh};
+use crate::estimator::{self, Features, PoseSolver, to_host};
 use crate::mesh::Mesh;
 use crate::metrics::rotation_error;
 use crate::raster::Rasterizer;
@@ -488,7 +488,7 @@ impl<'a> Run<'a> {
         n: usize,
         round: usize,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
-    ) -> Result<Vec<(Vec<f32>, usize, usize)>> {
+    ) -> Result<Vec<Features>> {
         let mut out = Vec::with_capacity(n);
         for start in (0..n).step_by(self.config.batch) {
             let len = self.config.batch.min(n - start);
@@ -511,7 +511,7 @@ impl<'a> Run<'a> {
     /// Render and compare on every image with the current `C`, and each hypothesis's matches.
     fn solve_all(
         &self,
-        features: &[(Vec<f32>, usize, usize)],
+        features: &[Features],
         round: usize,
         phase: Phase,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
@@ -524,20 +524,27 @@ impl<'a> Run<'a> {
         Ok(out)
     }
 
-    fn solve_batch(&self, features: &[(Vec<f32>, usize, usize)]) -> Result<Vec<Solved>> {
-        let solver_mesh = SolverMesh { vertex_features: self.c.clone(), clutter: self.clutter.clone(), dim: self.dim };
+    fn solve_batch(&self, features: &[Features]) -> Result<Vec<Solved>> {
+        let solver = PoseSolver::from_host(
+            self.mesh.clone(),
+            self.c.clone(),
+            self.clutter.clone(),
+            self.dim,
+            self.crop,
+            self.config.solver.clone(),
+        )?;
         // Only host data crosses into the worker threads (tch tensors are not Sync).
         let (mesh, crop, config, tau) = (&self.mesh, &self.crop, self.config, &self.tau);
         features
             .par_iter()
             .map_init(Rasterizer::new, |raster, f| {
-                let estimate = estimator::estimate(mesh, &solver_mesh, f, crop, &config.solver)?;
+                let estimate = solver.solve(f)?;
                 let hypotheses = estimate
                     .hypotheses
                     .iter()
                     .map(|h| {
                         let visible = visible_vertices(raster, mesh, crop, config.solver.stride, &h.pose)?;
-                        let fired = fires(&visible, f, &solver_mesh.vertex_features, tau, solver_mesh.dim);
+                        let fired = fires(&visible, f, solver.vertex_features(), tau, solver.dim());
                         Ok(Matches { visible, fired })
                     })
                     .collect::<Result<Vec<_>>>()?;
@@ -574,7 +581,7 @@ impl<'a> Run<'a> {
     /// the share of vertices updated at least once.
     fn vertex_update(
         &mut self,
-        features: &[(Vec<f32>, usize, usize)],
+        features: &[Features],
         round: usize,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
     ) -> Result<(f64, f64)> {
@@ -704,7 +711,7 @@ impl<'a> Run<'a> {
 /// vertex features and thresholds: the diagnostic the paper plots by azimuth.
 pub fn fired_ratio(
     neural_mesh: &NeuralMesh,
-    features: &(Vec<f32>, usize, usize),
+    features: &Features,
     crop: &Camera,
     stride: usize,
     pose: &Pose,
@@ -727,7 +734,7 @@ pub fn fired_ratio(
 }
 
 /// Which visible vertices fire: `f·C_r > τ_r` (METHOD.md §7.3).
-fn fires(visible: &VisibleVertices, f: &(Vec<f32>, usize, usize), c: &[f32], tau: &[f32], dim: usize) -> Vec<bool> {
+fn fires(visible: &VisibleVertices, f: &Features, c: &[f32], tau: &[f32], dim: usize) -> Vec<bool> {
     visible
         .vertices
         .iter()
@@ -754,24 +761,19 @@ fn step(
 }
 
 /// `f(cell) · c` for a channel-major feature map.
-fn cosine(f: &(Vec<f32>, usize, usize), cell: usize, c: &[f32]) -> f32 {
-    let hw = f.1 * f.2;
-    c.iter().enumerate().map(|(k, ck)| f.0[k * hw + cell] * ck).sum()
+fn cosine(f: &Features, cell: usize, c: &[f32]) -> f32 {
+    let hw = f.height * f.width;
+    c.iter().enumerate().map(|(k, ck)| f.data[k * hw + cell] * ck).sum()
 }
 
-fn add_feature(sum: &mut [f32], f: &(Vec<f32>, usize, usize), cell: usize) {
-    let hw = f.1 * f.2;
-    sum.iter_mut().enumerate().for_each(|(k, s)| *s += f.0[k * hw + cell]);
+fn add_feature(sum: &mut [f32], f: &Features, cell: usize) {
+    let hw = f.height * f.width;
+    sum.iter_mut().enumerate().for_each(|(k, s)| *s += f.data[k * hw + cell]);
 }
 
 fn normalise(row: &mut [f32]) {
     let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
     row.iter_mut().for_each(|x| *x /= norm);
-}
-
-fn to_host(t: &Tensor) -> Result<Vec<f32>> {
-    let flat = t.to_kind(Kind::Float).to_device(tch::Device::Cpu).contiguous().view([-1]);
-    Vec::<f32>::try_from(&flat).map_err(|e| EngineError::InvalidInput(format!("tensor to host: {e}")))
 }
 
 fn pose_changes(a: &[Pose], b: &[Pose]) -> Vec<f64> {

@@ -1,29 +1,203 @@
-//! Image in, pose out: the backbone's features, then render-and-compare against the neural mesh.
+//! Image in, pose out: the backbone's [`Features`], then render-and-compare against the neural
+//! mesh ([`PoseSolver`]), then the answer in image coordinates ([`PoseEstimate`]). Every caller
+//! (the service's workers, evaluation, the gate, adaptation, training's validation, the
+//! benches) goes through this module, so the sequence is written once.
 
 use tch::{Kind, Tensor};
 
 use crate::backbone::{Backbone, preprocess};
-use crate::camera::Camera;
-use crate::checkpoint::NeuralMesh;
+use crate::camera::{Camera, Pose};
+use crate::checkpoint::{Model, NeuralMesh};
 use crate::error::{EngineError, Result};
-use crate::solver::{Estimate, FeatureMap, MeshModel, SolverConfig, render_and_compare};
+use crate::input::{Crop, CropBox};
+use crate::mesh::Mesh;
+use crate::solver::{Estimate, FeatureMap, MeshModel, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid};
 
-/// The neural mesh's tensors as the solver takes them (host `f32`, row-major).
-pub struct SolverMesh {
-    pub vertex_features: Vec<f32>,
-    /// The clutter vectors the solver compares with (NeMo: the normalised bank mean, N = 1).
-    pub clutter: Vec<f32>,
+/// One image's backbone features: `dim × height × width`, row-major, on the host.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Features {
+    pub data: Vec<f32>,
     pub dim: usize,
+    pub height: usize,
+    pub width: usize,
 }
 
-impl SolverMesh {
-    pub fn new(vertex_features: &Tensor, clutter: &Tensor) -> Result<Self> {
-        let dim = vertex_features.size().last().copied().unwrap_or(0) as usize;
-        Ok(SolverMesh { vertex_features: to_vec(vertex_features)?, clutter: to_vec(clutter)?, dim })
+impl Features {
+    /// The features as the solver reads them (checks the sizes agree).
+    pub fn map(&self) -> Result<FeatureMap<'_>> {
+        FeatureMap::new(&self.data, self.dim, self.height, self.width)
+    }
+}
+
+/// Features of a batch of images in [0, 1] (N×3×H×W, on the backbone's device) in eval mode.
+pub fn features(backbone: &Backbone, images: &Tensor) -> Result<Vec<Features>> {
+    let x = preprocess(images)?;
+    let f = tch::no_grad(|| backbone.features(&x, false))?;
+    let [n, dim, h, w] = <[i64; 4]>::try_from(f.size()).map_err(|_| EngineError::InvalidInput("features".into()))?;
+    (0..n)
+        .map(|i| Ok(Features { data: to_host(&f.get(i))?, dim: dim as usize, height: h as usize, width: w as usize }))
+        .collect()
+}
+
+/// The solver's side of a neural mesh: its mesh, vertex features and clutter on the host, the
+/// crop camera and the solver's settings. Host data only, so it is `Sync` and crosses into
+/// rayon's threads (tch tensors do not).
+#[derive(Clone, Debug)]
+pub struct PoseSolver {
+    mesh: Mesh,
+    vertex_features: Vec<f32>,
+    /// The clutter vectors compared with (NeMo: the normalised bank mean, N = 1).
+    clutter: Vec<f32>,
+    dim: usize,
+    camera: Camera,
+    pub config: SolverConfig,
+}
+
+impl PoseSolver {
+    /// From host vectors (`R × dim` vertex features, `N × dim` clutter); checks their sizes.
+    pub fn from_host(
+        mesh: Mesh,
+        vertex_features: Vec<f32>,
+        clutter: Vec<f32>,
+        dim: usize,
+        camera: Camera,
+        config: SolverConfig,
+    ) -> Result<Self> {
+        config.validate()?;
+        MeshModel::new(&mesh, &vertex_features, &clutter, dim)?;
+        Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config })
     }
 
-    pub fn from_neural_mesh(nm: &NeuralMesh) -> Result<Self> {
-        SolverMesh::new(&nm.vertex_features, &nm.clutter)
+    /// From a mesh and its tensors (`R × dim`, `N × dim`), seen through the crop camera.
+    pub fn new(
+        mesh: &Mesh,
+        vertex_features: &Tensor,
+        clutter: &Tensor,
+        camera: Camera,
+        config: SolverConfig,
+    ) -> Result<Self> {
+        let dim = vertex_features.size().last().copied().unwrap_or(0) as usize;
+        PoseSolver::from_host(mesh.clone(), to_host(vertex_features)?, to_host(clutter)?, dim, camera, config)
+    }
+
+    /// A model's neural mesh, for its crops of size `crop = [H, W]`.
+    pub fn for_neural_mesh(nm: &NeuralMesh, crop: [usize; 2], config: SolverConfig) -> Result<Self> {
+        PoseSolver::new(&nm.mesh, &nm.vertex_features, &nm.clutter, Camera::for_crop(crop[0], crop[1])?, config)
+    }
+
+    pub fn mesh(&self) -> &Mesh {
+        &self.mesh
+    }
+
+    pub fn vertex_features(&self) -> &[f32] {
+        &self.vertex_features
+    }
+
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// The solver's view of the mesh and its features (what the reference solver takes too).
+    pub fn mesh_model(&self) -> Result<MeshModel<'_>> {
+        MeshModel::new(&self.mesh, &self.vertex_features, &self.clutter, self.dim)
+    }
+
+    /// One image prepared for pose evaluation (`S = C·F` and the clutter map).
+    pub fn problem<'a>(&'a self, features: &'a Features) -> Result<Problem<'a>> {
+        Problem::new(&self.mesh_model()?, &features.map()?, &self.camera, self.config.stride)
+    }
+
+    /// Render and compare (METHOD.md §6): the pose in the image whose features are `features`.
+    pub fn solve(&self, features: &Features) -> Result<Estimate> {
+        Ok(self.solve_with_grid(features)?.0)
+    }
+
+    /// [`PoseSolver::solve`] and the whole grid it started from (the gate's score margin
+    /// reads it); the same estimate.
+    pub fn solve_with_grid(&self, features: &Features) -> Result<(Estimate, Vec<ScoredPose>)> {
+        let problem = self.problem(features)?;
+        let grid = grid_losses(&problem, &self.config)?;
+        Ok((solve_from_grid(&problem, &grid, &self.config)?, grid))
+    }
+}
+
+/// The answer for one crop: the estimate, and what a user reads off it in image coordinates.
+#[derive(Clone, Debug)]
+pub struct PoseEstimate {
+    pub estimate: Estimate,
+    /// Azimuth, elevation and θ in degrees.
+    pub degrees: [f64; 3],
+    /// The object-to-camera rotation, row-major.
+    pub rotation: [f64; 9],
+    /// The image region the crop showed.
+    pub crop_box: CropBox,
+    /// The 8 corners of the category's cuboid in image coordinates ([`Crop::project_cuboid`]).
+    pub cuboid: [[f64; 2]; 8],
+}
+
+impl PoseEstimate {
+    pub fn pose(&self) -> &Pose {
+        &self.estimate.pose
+    }
+}
+
+/// Image in, pose out: a model (backbone + neural mesh) and its [`PoseSolver`].
+pub struct Estimator {
+    pub model: Model,
+    solver: PoseSolver,
+}
+
+impl Estimator {
+    pub fn new(model: Model, config: SolverConfig) -> Result<Self> {
+        let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, model.manifest.crop, config)?;
+        Ok(Estimator { model, solver })
+    }
+
+    pub fn solver(&self) -> &PoseSolver {
+        &self.solver
+    }
+
+    /// Features of a batch of crops (N×3×H×W in [0, 1], any device) in one backbone pass.
+    pub fn batch_features(&self, images: &Tensor) -> Result<Vec<Features>> {
+        features(&self.model.backbone, &images.to_device(self.model.vs.device()))
+    }
+
+    /// Features of each crop, one backbone pass per crop: libtorch's CPU convolutions are not
+    /// batch-invariant (~1e-6), and the solver turns that into answers up to a radian apart
+    /// when two hypotheses nearly tie; per crop, an answer never depends on its neighbours.
+    pub fn features(&self, crops: &[&Crop]) -> Result<Vec<Features>> {
+        let mut out = Vec::with_capacity(crops.len());
+        for crop in crops {
+            out.extend(self.batch_features(&crop.tensor())?);
+        }
+        Ok(out)
+    }
+
+    /// The answer for a crop whose features are `features`.
+    pub fn estimate_features(&self, crop: &Crop, features: &Features) -> Result<PoseEstimate> {
+        self.answer(crop, self.solver.solve(features)?)
+    }
+
+    /// Image in, pose out, for one crop.
+    pub fn estimate(&self, crop: &Crop) -> Result<PoseEstimate> {
+        let features = self.features(&[crop])?;
+        self.estimate_features(crop, &features[0])
+    }
+
+    fn answer(&self, crop: &Crop, estimate: Estimate) -> Result<PoseEstimate> {
+        let p = estimate.pose;
+        let r = p.rotation();
+        Ok(PoseEstimate {
+            degrees: [p.azimuth.to_degrees(), p.elevation.to_degrees(), p.theta.to_degrees()],
+            rotation: std::array::from_fn(|i| r[(i / 3, i % 3)]),
+            crop_box: crop.crop_box,
+            cuboid: crop.project_cuboid(&self.model.manifest.cuboid, &p)?,
+            estimate,
+        })
     }
 }
 
@@ -33,28 +207,7 @@ pub fn clutter_mean(bank: &Tensor) -> Tensor {
     &mean / mean.norm().clamp_min(1e-12)
 }
 
-fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
+pub(crate) fn to_host(t: &Tensor) -> Result<Vec<f32>> {
     let flat = t.to_kind(Kind::Float).to_device(tch::Device::Cpu).contiguous().view([-1]);
     Vec::<f32>::try_from(&flat).map_err(|e| EngineError::InvalidInput(format!("tensor to host: {e}")))
-}
-
-/// Features of a batch of images in [0, 1] (N×3×H×W) in eval mode, as host vectors D×h×w.
-pub fn features(backbone: &Backbone, images: &Tensor) -> Result<Vec<(Vec<f32>, usize, usize)>> {
-    let x = preprocess(images)?;
-    let f = tch::no_grad(|| backbone.features(&x, false))?;
-    let [n, _, h, w] = <[i64; 4]>::try_from(f.size()).map_err(|_| EngineError::InvalidInput("features".into()))?;
-    (0..n).map(|i| Ok((to_vec(&f.get(i))?, h as usize, w as usize))).collect()
-}
-
-/// Solves the pose of one image's features.
-pub fn estimate(
-    mesh: &crate::mesh::Mesh,
-    solver_mesh: &SolverMesh,
-    features: &(Vec<f32>, usize, usize),
-    crop: &Camera,
-    config: &SolverConfig,
-) -> Result<Estimate> {
-    let model = MeshModel::new(mesh, &solver_mesh.vertex_features, &solver_mesh.clutter, solver_mesh.dim)?;
-    let map = FeatureMap::new(&features.0, solver_mesh.dim, features.1, features.2)?;
-    render_and_compare(&model, &map, crop, config)
 }

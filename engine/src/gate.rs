@@ -22,13 +22,13 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use crate::camera::{Camera, Pose, rotation};
+use crate::adapt::RoundReport;
+use crate::camera::{Pose, rotation};
 use crate::checkpoint::Model;
 use crate::error::{EngineError, Result};
-use crate::estimator::{self, SolverMesh};
-use crate::mesh::Mesh;
+use crate::estimator::{self, Features, PoseSolver};
 use crate::metrics::rotation_error;
-use crate::solver::{Estimate, FeatureMap, MeshModel, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid};
+use crate::solver::{Estimate, ScoredPose, SolverConfig};
 
 /// An image is flip-consistent when its mirrored crop's estimate is within this geodesic angle
 /// of the mirrored pose: π/6, the benchmark's accuracy threshold.
@@ -131,6 +131,17 @@ impl GateConfig {
             return bad(format!("gate min_target_fired must be in [0, 1], got {}", self.min_target_fired));
         }
         self.solver.validate()
+    }
+}
+
+impl GateConfig {
+    /// The target check (see [`GateConfig::min_target_fired`]): on round 1's report, the share
+    /// of visible vertices that fired to the unchanged model when it is below the minimum (the
+    /// images do not look like the category), else `None`. Judged by the source model's eyes:
+    /// after AdaBN almost anything fires. Later rounds are never judged.
+    pub fn target_mismatch(&self, round: &RoundReport) -> Option<f64> {
+        let seen = round.source_fired_ratio.unwrap_or(round.fired_ratio_before);
+        (round.round == 1 && seen < self.min_target_fired).then_some(seen)
     }
 }
 
@@ -247,9 +258,7 @@ pub fn measure_poses(
         return Err(EngineError::InvalidInput(format!("gate images are {:?}, not floats in [0, 1]", images.kind())));
     }
     let n = size[0] as usize;
-    let camera = Camera::for_crop(h, w)?;
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-    let mesh = &model.neural_mesh.mesh;
+    let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], config.solver.clone())?;
     let device = model.vs.device();
     let mut out = Vec::with_capacity(n);
     if progress(0, n).is_break() {
@@ -262,11 +271,8 @@ pub fn measure_poses(
         let features = estimator::features(&model.backbone, &both)?;
         let (plain, flipped) = features.split_at(len);
         // Host data only crosses into the worker threads (tch tensors are not Sync).
-        let measured: Vec<Measured> = plain
-            .par_iter()
-            .zip(flipped)
-            .map(|(f, g)| measure_one(mesh, &solver_mesh, f, g, &camera, &config.solver))
-            .collect::<Result<_>>()?;
+        let measured: Vec<Measured> =
+            plain.par_iter().zip(flipped).map(|(f, g)| measure_one(&solver, f, g)).collect::<Result<_>>()?;
         out.extend(measured);
         if progress(out.len(), n).is_break() {
             return Err(EngineError::Cancelled);
@@ -275,21 +281,10 @@ pub fn measure_poses(
     Ok(out)
 }
 
-fn measure_one(
-    mesh: &Mesh,
-    solver_mesh: &SolverMesh,
-    plain: &(Vec<f32>, usize, usize),
-    flipped: &(Vec<f32>, usize, usize),
-    camera: &Camera,
-    config: &SolverConfig,
-) -> Result<Measured> {
-    let model = MeshModel::new(mesh, &solver_mesh.vertex_features, &solver_mesh.clutter, solver_mesh.dim)?;
-    let map = FeatureMap::new(&plain.0, solver_mesh.dim, plain.1, plain.2)?;
-    let problem = Problem::new(&model, &map, camera, config.stride)?;
-    let grid = grid_losses(&problem, config)?;
-    let estimate = solve_from_grid(&problem, &grid, config)?;
+fn measure_one(solver: &PoseSolver, plain: &Features, flipped: &Features) -> Result<Measured> {
+    let (estimate, grid) = solver.solve_with_grid(plain)?;
     let margin = score_margin(&estimate, &grid)?;
-    let mirror = estimator::estimate(mesh, solver_mesh, flipped, camera, config)?;
+    let mirror = solver.solve(flipped)?;
     let flip_consistent = flip_consistent(&estimate.pose, &mirror.pose);
     let check = ImageCheck { azimuth: estimate.pose.azimuth, score: estimate.score, margin, flip_consistent };
     Ok(Measured { check, pose: estimate.pose, flipped_pose: mirror.pose })

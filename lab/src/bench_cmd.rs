@@ -15,12 +15,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use tch::{Device, Tensor};
 use udapose_engine::checkpoint;
-use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::estimator::{self, PoseSolver};
 use udapose_engine::solver::reference::{self, ReferenceConfig};
-use udapose_engine::solver::{AdamConfig, Estimate, FeatureMap, MeshModel, Optimizer, SolverConfig};
+use udapose_engine::solver::{AdamConfig, Estimate, Optimizer, SolverConfig};
 
 use udapose_engine::metrics::paired_bootstrap;
-use udapose_engine::{Camera, Pose, PoseMetrics, pose_error, rotation_error};
+use udapose_engine::{Pose, PoseMetrics, pose_error, rotation_error};
 use udapose_lab::atomic::write_atomic;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
@@ -186,10 +186,6 @@ fn inits(e: &udapose_engine::Result<Estimate>) -> Vec<[u64; 4]> {
     v
 }
 
-fn feature_map(f: &(Vec<f32>, usize, usize), dim: usize) -> udapose_engine::Result<FeatureMap<'_>> {
-    FeatureMap::new(&f.0, dim, f.1, f.2)
-}
-
 /// `arg` as a POSIX shell word: as is when it is plain, else single-quoted.
 fn shell_quote(arg: &str) -> String {
     let plain = !arg.is_empty() && arg.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_./=:,+@%".contains(&b));
@@ -214,12 +210,10 @@ fn solver(args: &SolverArgs) -> Result<()> {
     let model =
         checkpoint::load(&args.model, Device::Cpu).with_context(|| format!("loading {}", args.model.display()))?;
     let [h, w] = model.manifest.crop;
-    let camera = Camera::for_crop(h, w)?;
-    let mesh = &model.neural_mesh.mesh;
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-    let mesh_model = MeshModel::new(mesh, &solver_mesh.vertex_features, &solver_mesh.clutter, solver_mesh.dim)?;
-    let config = SolverConfig::default();
-    let method = SolverConfig { optimizer: Optimizer::Adam(AdamConfig::method()), ..SolverConfig::default() };
+    let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], SolverConfig::default())?;
+    let mut method_solver = solver.clone();
+    method_solver.config.optimizer = Optimizer::Adam(AdamConfig::method());
+    let (camera, config, mesh_model) = (*solver.camera(), &solver.config, solver.mesh_model()?);
     let reference_config = ReferenceConfig { parallel_hypotheses: args.reference_parallel, ..Default::default() };
     if args.backbone_torch_threads < 0 {
         bail!("--backbone-torch-threads must be at least 0");
@@ -262,8 +256,8 @@ fn solver(args: &SolverArgs) -> Result<()> {
         let mut features = estimator::features(&model.backbone, &image)?;
         let backbone_ms = ms_since(t);
         let f = features.pop().context("the backbone returned no features")?;
-        if (f.1, f.2) != (grid.height, grid.width) {
-            bail!("{name}: features are {}×{}, expected the {}×{} grid", f.1, f.2, grid.height, grid.width);
+        if (f.height, f.width) != (grid.height, grid.width) {
+            bail!("{name}: features are {}×{}, expected the {}×{} grid", f.height, f.width, grid.height, grid.width);
         }
         images.push((name, truth, backbone_ms, f));
         progress.inc(1);
@@ -271,15 +265,15 @@ fn solver(args: &SolverArgs) -> Result<()> {
     progress.finish();
 
     // Phase 2: udapose's solver (its default, and METHOD's 300 steps) on those features.
-    estimator::estimate(mesh, &solver_mesh, &images[0].3, &camera, &config)?; // warm-up
+    solver.solve(&images[0].3)?; // warm-up
     let progress = bar("udapose");
     let mut fast = Vec::with_capacity(total);
     for (_, truth, _, f) in &images {
         let t = Instant::now();
-        let estimate = estimator::estimate(mesh, &solver_mesh, f, &camera, &config);
+        let estimate = solver.solve(f);
         let fast_ms = ms_since(t);
         let t = Instant::now();
-        let estimate_method = estimator::estimate(mesh, &solver_mesh, f, &camera, &method);
+        let estimate_method = method_solver.solve(f);
         let method_ms = ms_since(t);
         let starts = inits(&estimate);
         fast.push((Solved::new(fast_ms, estimate, truth), Solved::new(method_ms, estimate_method, truth), starts));
@@ -291,15 +285,15 @@ fn solver(args: &SolverArgs) -> Result<()> {
     // once: switching per call stalls libtorch's thread pool).
     tch::set_num_threads(args.reference_torch_threads);
     let reference_run = (|| -> Result<Vec<(Solved, Vec<[u64; 4]>)>> {
-        let map = |f| feature_map(f, solver_mesh.dim);
         let short = ReferenceConfig { adam: AdamConfig { steps: 5, ..AdamConfig::method() }, ..reference_config };
-        reference::render_and_compare(&mesh_model, &map(&images[0].3)?, &camera, &config, &short)?; // warm-up
+        reference::render_and_compare(&mesh_model, &images[0].3.map()?, &camera, config, &short)?; // warm-up
         let progress = bar("reference");
         let mut out = Vec::with_capacity(total);
         for (_, truth, _, f) in &images {
             let t = Instant::now();
-            let estimate = map(f)
-                .and_then(|m| reference::render_and_compare(&mesh_model, &m, &camera, &config, &reference_config));
+            let estimate = f
+                .map()
+                .and_then(|m| reference::render_and_compare(&mesh_model, &m, &camera, config, &reference_config));
             let ms = ms_since(t);
             let starts = inits(&estimate);
             out.push((Solved::new(ms, estimate, truth), starts));
@@ -458,7 +452,7 @@ fn solver(args: &SolverArgs) -> Result<()> {
          hypotheses {order}.\n{note}",
         version = model.manifest.version,
         backbone = model.manifest.backbone,
-        dim = solver_mesh.dim,
+        dim = solver.dim(),
         domain = args.domain,
         split = args.split.join(","),
         only_u = paired["udapose"]["only_udapose_right"],

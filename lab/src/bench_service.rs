@@ -26,9 +26,9 @@ use anyhow::{Context, Result, anyhow, bail, ensure};
 use serde_json::{Value, json};
 use tch::Tensor;
 use udapose_engine::{
-    Camera, checkpoint,
-    estimator::{self, SolverMesh},
-    input::{self, Rgb8Image},
+    checkpoint,
+    estimator::Estimator,
+    input::{self, Crop, Rgb8Image},
     solver::SolverConfig,
 };
 use udapose_lab::atomic::write_atomic;
@@ -1303,28 +1303,30 @@ struct Ceiling {
 /// The backbone (and the engine) alone on the same crops, on this process's CPU or GPU.
 fn backbone_ceiling(model_dir: &Path, images: &[Vec<u8>], max_batch: usize) -> Result<Ceiling> {
     let device = udapose_engine::runtime::RuntimeInfo::detect().device();
-    let model = checkpoint::load(model_dir, device)?;
-    let crop = model.manifest.crop;
-    let crops: Vec<Tensor> = images
+    let estimator = Estimator::new(checkpoint::load(model_dir, device)?, SolverConfig::default())?;
+    let size = estimator.model.manifest.crop;
+    let crops: Vec<Crop> = images
         .iter()
-        .map(|bytes| -> Result<Tensor> {
+        .map(|bytes| -> Result<Crop> {
             let img = image::load_from_memory(bytes)?.into_rgb8();
             let (w, h) = (img.width() as usize, img.height() as usize);
-            Ok(input::crop(&Rgb8Image::new(img.as_raw(), w, h)?, None, crop)?.tensor())
+            Ok(input::crop(&Rgb8Image::new(img.as_raw(), w, h)?, None, size)?)
         })
         .collect::<Result<_>>()?;
-    let backbone = &model.backbone;
-    let run = |batch: &[Tensor]| estimator::features(backbone, &Tensor::cat(batch, 0).to_device(device));
-    run(&crops[..1])?; // warm-up
+    let run = |batch: &[&Crop]| {
+        let tensors: Vec<Tensor> = batch.iter().map(|c| c.tensor()).collect();
+        estimator.batch_features(&Tensor::cat(&tensors, 0))
+    };
+    run(&[&crops[0]])?; // warm-up
     let rounds = 3;
     let t = Instant::now();
     for _ in 0..rounds {
-        for c in crops.chunks(1) {
-            run(c)?;
+        for c in &crops {
+            run(&[c])?;
         }
     }
     let batch1 = (rounds * crops.len()) as f64 / t.elapsed().as_secs_f64();
-    let batch: Vec<Tensor> = crops.iter().cycle().take(max_batch).map(Tensor::shallow_clone).collect();
+    let batch: Vec<&Crop> = crops.iter().cycle().take(max_batch).collect();
     run(&batch)?;
     let t = Instant::now();
     let batches = (rounds * crops.len()).div_ceil(max_batch);
@@ -1332,18 +1334,10 @@ fn backbone_ceiling(model_dir: &Path, images: &[Vec<u8>], max_batch: usize) -> R
         run(&batch)?;
     }
     let batched = (batches * max_batch) as f64 / t.elapsed().as_secs_f64();
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-    let camera = Camera::for_crop(crop[0], crop[1])?;
-    let config = SolverConfig::default();
-    let solve = |c: &Tensor| -> Result<()> {
-        let f = run(std::slice::from_ref(c))?;
-        estimator::estimate(&model.neural_mesh.mesh, &solver_mesh, &f[0], &camera, &config)?;
-        Ok(())
-    };
-    solve(&crops[0])?; // warm-up (the solver's thread pool and buffers)
+    estimator.estimate(&crops[0])?; // warm-up (the solver's thread pool and buffers)
     let t = Instant::now();
     for _ in 0..rounds {
-        crops.iter().try_for_each(solve)?;
+        crops.iter().try_for_each(|c| estimator.estimate(c).map(drop))?;
     }
     let engine = (rounds * crops.len()) as f64 / t.elapsed().as_secs_f64();
     Ok(Ceiling { batch1, batched, engine })

@@ -13,9 +13,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use serde_json::{Value, json};
 use tch::Tensor;
-use udapose_engine::Camera;
 use udapose_engine::checkpoint::{self, Model};
-use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::estimator::{self, PoseSolver};
 use udapose_engine::solver::SolverConfig;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
@@ -48,7 +47,7 @@ struct Entry {
     dir: PathBuf,
     model: Model,
     eval: Value,
-    solver_mesh: SolverMesh,
+    solver: PoseSolver,
 }
 
 pub fn run(args: &Args) -> Result<()> {
@@ -91,8 +90,8 @@ fn open(spec: &str) -> Result<Entry> {
         sources.push(json!({"file": file, "commit": report["commit"]}));
     }
     let eval = json!({"domains": domains, "sources": sources});
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-    Ok(Entry { name: name.to_string(), dir, model, eval, solver_mesh })
+    let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, model.manifest.crop, SolverConfig::default())?;
+    Ok(Entry { name: name.to_string(), dir, model, eval, solver })
 }
 
 /// Median backbone ms per crop and estimate ms per image (backbone + solver) of each model, on
@@ -102,18 +101,16 @@ fn time_models(entries: &[Entry], data: &Path, n: usize) -> Result<Vec<(f64, f64
     tch::set_num_threads(1);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
     let split = SyncarSplit::open(data, "source", "test")?;
-    let config = SolverConfig::default();
     let mut samples = vec![(Vec::new(), Vec::new()); entries.len()];
     for i in 0..n.min(split.len()) {
         let (pixels, _, h, w, _) = load_sample(&split, i)?;
         let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
-        let camera = Camera::for_crop(h, w)?;
         for (e, (backbone, total)) in entries.iter().zip(samples.iter_mut()) {
             let started = Instant::now();
             let features = estimator::features(&e.model.backbone, &image)?;
             let after_backbone = started.elapsed();
-            let (mesh, solver_mesh) = (&e.model.neural_mesh.mesh, &e.solver_mesh);
-            pool.install(|| estimator::estimate(mesh, solver_mesh, &features[0], &camera, &config))?;
+            let solver = &e.solver;
+            pool.install(|| solver.solve(&features[0]))?;
             backbone.push(after_backbone.as_secs_f64() * 1e3);
             total.push(started.elapsed().as_secs_f64() * 1e3);
         }

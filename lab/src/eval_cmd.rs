@@ -7,11 +7,11 @@ use serde_json::json;
 use tch::Tensor;
 use udapose_engine::adapt::{AdaptConfig, fired_ratio};
 use udapose_engine::checkpoint;
-use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
-use udapose_engine::{Camera, PoseMetrics, pose_error};
+use udapose_engine::{PoseMetrics, pose_error};
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
 use udapose_lab::synth::all_domains;
@@ -41,9 +41,9 @@ pub fn run(args: &Args) -> Result<()> {
     let device = RuntimeInfo::detect().device();
     let model = checkpoint::load(&args.model, device).with_context(|| format!("loading {}", args.model.display()))?;
     let [h, w] = model.manifest.crop;
-    let camera = Camera::for_crop(h, w)?;
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-    let config = SolverConfig::default();
+    let estimator = Estimator::new(model, SolverConfig::default())?;
+    let (model, solver) = (&estimator.model, estimator.solver());
+    let config = &solver.config;
     // The fired-vertex diagnostic uses the adaptation's firing test.
     let threshold = AdaptConfig::default().threshold;
     let names: Vec<String> =
@@ -73,13 +73,13 @@ pub fn run(args: &Args) -> Result<()> {
                 bail!("{name}: images are {iw}x{ih}, the model's crop is {w}x{h}");
             }
             let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
-            let features = estimator::features(&model.backbone, &image)?;
-            let estimate = estimator::estimate(&model.neural_mesh.mesh, &solver_mesh, &features[0], &camera, &config);
+            let features = estimator.batch_features(&image)?;
+            let estimate = solver.solve(&features[0]);
             let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
             errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
             azimuths.push(pose.azimuth.to_degrees());
             let stride = config.stride;
-            fired.push(fired_ratio(&model.neural_mesh, &features[0], &camera, stride, &pose, threshold)?);
+            fired.push(fired_ratio(&model.neural_mesh, &features[0], solver.camera(), stride, &pose, threshold)?);
         }
         let m = PoseMetrics::from_errors(&errors)?;
         let ci = MetricIntervals::bootstrap(&errors, 1000, 0)?;

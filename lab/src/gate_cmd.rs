@@ -24,11 +24,11 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 use tch::Tensor;
 use udapose_engine::checkpoint::{self, Model};
-use udapose_engine::estimator::{self, SolverMesh};
+use udapose_engine::estimator::{self, PoseSolver};
 use udapose_engine::gate::{self, Decision, GateConfig, GateStats, Measured};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
-use udapose_engine::{Camera, Pose, PoseMetrics, pose_error};
+use udapose_engine::{Pose, PoseMetrics, pose_error};
 use udapose_lab::atomic::write_atomic;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
@@ -270,20 +270,15 @@ fn measure_domain(
 /// solver in parallel over them.
 fn estimate_all(model: &Model, images: &Tensor, config: &SolverConfig) -> Result<Vec<Pose>> {
     let n = images.size()[0];
-    let [h, w] = model.manifest.crop;
-    let camera = Camera::for_crop(h, w)?;
-    let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
+    let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, model.manifest.crop, config.clone())?;
     let mut out = Vec::with_capacity(n as usize);
     for start in (0..n).step_by(gate::MEASURE_BATCH) {
         let len = (gate::MEASURE_BATCH as i64).min(n - start);
         let batch = images.narrow(0, start, len).to_device(model.vs.device());
         let features = estimator::features(&model.backbone, &batch)?;
         // Host data only crosses into the worker threads (tch tensors are not Sync).
-        let mesh = &model.neural_mesh.mesh;
-        let poses: Vec<Pose> = features
-            .par_iter()
-            .map(|f| Ok(estimator::estimate(mesh, &solver_mesh, f, &camera, config)?.pose))
-            .collect::<udapose_engine::Result<_>>()?;
+        let poses: Vec<Pose> =
+            features.par_iter().map(|f| Ok(solver.solve(f)?.pose)).collect::<udapose_engine::Result<_>>()?;
         out.extend(poses);
     }
     Ok(out)

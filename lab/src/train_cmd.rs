@@ -13,7 +13,7 @@ use tch::nn::OptimizerConfig;
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::backbone::{Arch, Backbone, DECODER_GROUP, TRUNK_GROUP};
 use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
-use udapose_engine::estimator::{self, SolverMesh, clutter_mean};
+use udapose_engine::estimator::{self, PoseSolver, clutter_mean};
 use udapose_engine::mesh::TARGET_VERTICES;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
@@ -251,15 +251,16 @@ fn validate(
     camera: &Camera,
     limit: usize,
 ) -> Result<PoseMetrics> {
-    let solver_mesh = SolverMesh::new(&training.vertex_features, &clutter_mean(&training.clutter))?;
+    let clutter = clutter_mean(&training.clutter);
+    let solver =
+        PoseSolver::new(&training.mesh, &training.vertex_features, &clutter, *camera, SolverConfig::default())?;
     let n = if limit == 0 { val.len() } else { limit.min(val.len()) };
-    let config = SolverConfig::default();
     let mut errors = Vec::with_capacity(n);
     for i in 0..n {
         let (pixels, pose, h, w, _) = udapose_lab::loader::load_sample(val, i)?;
         let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
         let features = estimator::features(backbone, &image)?;
-        let estimate = estimator::estimate(&training.mesh, &solver_mesh, &features[0], camera, &config);
+        let estimate = solver.solve(&features[0]);
         let gt = [pose.azimuth, pose.elevation, pose.theta];
         errors.push(pose_error(estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]), gt));
     }

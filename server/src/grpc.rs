@@ -20,14 +20,14 @@ use udapose_proto::v1::{
     pose_service_server::{PoseService, PoseServiceServer},
 };
 
-use crate::{
+use udapose_service::{
     api::{EstimateAnswer, EstimateInput, ImageInput, PoseAnswer},
     auth::Role,
     buffer::AckStatus,
     error::ApiError,
     jobs::{JobEvent, JobState, JobView, Overrides, TargetAck},
-    registry::Category,
     service::{ActivationView, Service},
+    views::{self, ModelSummary},
 };
 
 /// Serves until `stop` resolves, then lets in-flight calls finish.
@@ -116,7 +116,7 @@ pub fn to_status(e: &ApiError) -> Status {
     if let Some(after) = e.retry_after() {
         details.set_retry_info(Some(after));
     }
-    Status::with_error_details(e.grpc_code(), e.to_string(), details)
+    Status::with_error_details(grpc_code(e), e.to_string(), details)
 }
 
 type EstimateStream = Pin<Box<dyn Stream<Item = Result<EstimateResponse, Status>> + Send + 'static>>;
@@ -160,7 +160,7 @@ impl PoseService for Api {
                     Ok(answer) => to_response(answer),
                     Err(e) => EstimateResponse {
                         frame_id,
-                        error: Some(pb::ErrorStatus { code: e.grpc_code() as i32, message: e.to_string() }),
+                        error: Some(pb::ErrorStatus { code: grpc_code(&e) as i32, message: e.to_string() }),
                         ..Default::default()
                     },
                 };
@@ -177,7 +177,7 @@ impl PoseService for Api {
 impl ModelService for Api {
     async fn list_models(&self, request: Request<ListModelsRequest>) -> Result<Response<ListModelsResponse>, Status> {
         self.authorize(&request, Role::Read)?;
-        let models = self.service.registry.categories().map(|c| model_info(c)).collect();
+        let models = self.service.registry.categories().map(|c| model_info(views::summary(c))).collect();
         Ok(Response::new(ListModelsResponse { models }))
     }
 
@@ -187,7 +187,7 @@ impl ModelService for Api {
     ) -> Result<Response<ModelDescription>, Status> {
         self.authorize(&request, Role::Read)?;
         let category = self.service.category(&request.get_ref().category).map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(describe(category)))
+        Ok(Response::new(describe(views::describe(category))))
     }
 
     async fn list_versions(
@@ -289,8 +289,8 @@ impl AdaptationService for Api {
     async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
         self.authorize(&request, Role::Read)?;
         let r = request.into_inner();
-        let events =
-            crate::service::watch(&self.service.jobs, r.job_id, r.after_seq).map_err(|e| self.refuse(e, "grpc"))?;
+        let events = udapose_service::service::watch(&self.service.jobs, r.job_id, r.after_seq)
+            .map_err(|e| self.refuse(e, "grpc"))?;
         Ok(Response::new(Box::pin(events.map(|e| e.map(to_event).map_err(|e| to_status(&e))))))
     }
 
@@ -407,30 +407,40 @@ fn to_activation(v: ActivationView) -> pb::ActivationEntry {
     }
 }
 
-pub fn model_info(c: &Category) -> ModelInfo {
-    ModelInfo {
-        category: c.name.clone(),
-        version: c.active().map(|a| a.version.clone()).unwrap_or_default(),
-        ready: c.ready(),
+/// The gRPC status code of a service error.
+fn grpc_code(e: &ApiError) -> tonic::Code {
+    match e {
+        ApiError::InvalidArgument(_) => tonic::Code::InvalidArgument,
+        ApiError::NotFound(_) => tonic::Code::NotFound,
+        ApiError::TooLarge(_) => tonic::Code::ResourceExhausted,
+        ApiError::Unavailable { .. } => tonic::Code::Unavailable,
+        ApiError::Unauthenticated(_) => tonic::Code::Unauthenticated,
+        ApiError::PermissionDenied(_) => tonic::Code::PermissionDenied,
+        ApiError::Aborted(_) => tonic::Code::Aborted,
+        ApiError::FailedPrecondition(_) => tonic::Code::FailedPrecondition,
+        ApiError::DeadlineExceeded(_) => tonic::Code::DeadlineExceeded,
+        ApiError::Internal(_) => tonic::Code::Internal,
     }
 }
 
-pub fn describe(c: &Category) -> ModelDescription {
-    let mut d =
-        ModelDescription { info: Some(model_info(c)), error: c.error().unwrap_or_default(), ..Default::default() };
-    if let Some(a) = c.active() {
-        let m = &a.manifest;
-        d.generation = a.generation;
-        d.trained_as = m.version.clone();
-        d.backbone = m.backbone.name().to_string();
-        d.feature_dim = m.feature_dim as u32;
-        d.vertices = m.vertices as u32;
-        d.crop_height = m.crop[0] as u32;
-        d.crop_width = m.crop[1] as u32;
-        d.cuboid = m.cuboid.min.iter().chain(&m.cuboid.max).copied().collect();
-        d.manifest_json = serde_json::to_string(m).unwrap_or_default();
+fn model_info(s: ModelSummary) -> ModelInfo {
+    ModelInfo { category: s.category, version: s.version.unwrap_or_default(), ready: s.ready }
+}
+
+fn describe(d: views::ModelDescription) -> ModelDescription {
+    ModelDescription {
+        error: d.summary.error.clone().unwrap_or_default(),
+        info: Some(model_info(d.summary)),
+        generation: d.generation,
+        trained_as: d.trained_as,
+        backbone: d.backbone,
+        feature_dim: d.feature_dim as u32,
+        vertices: d.vertices as u32,
+        crop_height: d.crop[0] as u32,
+        crop_width: d.crop[1] as u32,
+        cuboid: d.cuboid,
+        manifest_json: d.manifest.map(|m| serde_json::to_string(&m).unwrap_or_default()).unwrap_or_default(),
     }
-    d
 }
 
 fn to_input(r: EstimateRequest, timeout: Option<Duration>) -> Result<EstimateInput, ApiError> {

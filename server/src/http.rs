@@ -15,14 +15,15 @@ use axum::{
 use serde::Deserialize;
 use serde_json::{Value, json};
 
-use crate::{
+use udapose_service::{
     api::{EstimateInput, ImageInput},
     auth::Role,
     error::ApiError,
-    grpc::{describe, model_info},
     service::Service,
-    tls::Listener,
+    views,
 };
+
+use crate::tls::Listener;
 
 use axum::serve::ListenerExt;
 
@@ -88,7 +89,9 @@ impl IntoResponse for HttpError {
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_str(&secs).expect("digits"));
         }
         if status == StatusCode::UNAUTHORIZED {
-            response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static(crate::auth::CHALLENGE));
+            response
+                .headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static(udapose_service::auth::CHALLENGE));
         }
         response
     }
@@ -141,13 +144,9 @@ async fn list_models(State(service): State<Arc<Service>>, headers: HeaderMap) ->
         .registry
         .categories()
         .map(|c| {
-            let info = model_info(c);
-            let mut m = json!({
-                "category": info.category,
-                "version": (!info.version.is_empty()).then_some(info.version),
-                "ready": info.ready,
-            });
-            if let Some(e) = c.error() {
+            let s = views::summary(c);
+            let mut m = json!({ "category": s.category, "version": s.version, "ready": s.ready });
+            if let Some(e) = s.error {
                 m["error"] = json!(e);
             }
             m
@@ -163,23 +162,21 @@ async fn describe_model(
 ) -> Result<Json<Value>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
     let category = service.category(&category).map_err(|e| refuse(&service, e))?;
-    let d = describe(category);
-    let info = d.info.unwrap_or_default();
-    let manifest: Value = serde_json::from_str(&d.manifest_json).unwrap_or(Value::Null);
+    let d = views::describe(category);
     Ok(Json(json!({
-        "category": info.category,
-        "version": info.version,
-        "ready": info.ready,
+        "category": d.summary.category,
+        "version": d.summary.version.unwrap_or_default(),
+        "ready": d.summary.ready,
         "generation": d.generation,
         "trained_as": d.trained_as,
         "backbone": d.backbone,
         "feature_dim": d.feature_dim,
         "vertices": d.vertices,
-        "crop_height": d.crop_height,
-        "crop_width": d.crop_width,
+        "crop_height": d.crop[0],
+        "crop_width": d.crop[1],
         "cuboid": d.cuboid,
-        "error": d.error,
-        "manifest": manifest,
+        "error": d.summary.error.unwrap_or_default(),
+        "manifest": d.manifest,
     })))
 }
 
@@ -191,7 +188,7 @@ async fn estimate(
     Path(category): Path<String>,
     RawQuery(query): RawQuery,
     request: Request,
-) -> Result<Json<crate::api::EstimateAnswer>, HttpError> {
+) -> Result<Json<udapose_service::api::EstimateAnswer>, HttpError> {
     authorize(&service, request.headers(), Role::Read)?;
     let query = EstimateQuery::parse(query.as_deref().unwrap_or("")).map_err(|e| refuse(&service, e))?;
     let bytes = read_image(&service, request).await.map_err(|e| refuse(&service, e))?;
@@ -236,7 +233,7 @@ async fn activate(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<crate::service::ActivationView>, HttpError> {
+) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
     switch_version(&service, &headers, &category, &body, false).await
 }
 
@@ -245,7 +242,7 @@ async fn rollback(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<crate::service::ActivationView>, HttpError> {
+) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
     switch_version(&service, &headers, &category, &body, true).await
 }
 
@@ -256,7 +253,7 @@ async fn switch_version(
     category: &str,
     body: &Bytes,
     rollback: bool,
-) -> Result<Json<crate::service::ActivationView>, HttpError> {
+) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
     authorize(service, headers, Role::Admin)?;
     let b: ActivateBody = json_body(service, body)?;
     let bad = |why: &str| refuse(service, ApiError::InvalidArgument(why.into()));
@@ -295,7 +292,7 @@ async fn put_targets(
 #[serde(deny_unknown_fields)]
 struct StartJobBody {
     #[serde(default)]
-    overrides: crate::jobs::Overrides,
+    overrides: udapose_service::jobs::Overrides,
     client_job_id: Option<String>,
 }
 
@@ -304,7 +301,7 @@ async fn start_job(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<crate::jobs::JobView>, HttpError> {
+) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Write)?;
     let b: StartJobBody = json_body(&service, &body)?;
     let job = service.start_job(&category, b.overrides, b.client_job_id).await;
@@ -325,7 +322,7 @@ async fn get_job(
     State(service): State<Arc<Service>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-) -> Result<Json<crate::jobs::JobView>, HttpError> {
+) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
     service.job(id).await.map(Json).map_err(|e| refuse(&service, e))
 }
@@ -345,7 +342,7 @@ async fn job_events(
         .transpose()
         .map_err(|_| refuse(&service, ApiError::InvalidArgument("bad after_seq".into())))?
         .unwrap_or(0);
-    let events = crate::service::watch(&service.jobs, id, after).map_err(|e| refuse(&service, e))?;
+    let events = udapose_service::service::watch(&service.jobs, id, after).map_err(|e| refuse(&service, e))?;
     let stream = tokio_stream::StreamExt::map(events, |e| {
         let event = match e {
             Ok(ev) => axum::response::sse::Event::default()
@@ -365,7 +362,7 @@ async fn cancel_job(
     headers: HeaderMap,
     Path(id): Path<String>,
     RawQuery(query): RawQuery,
-) -> Result<Json<crate::jobs::JobView>, HttpError> {
+) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
     authorize(&service, &headers, Role::Admin)?;
     let reason = query_value(query.as_deref(), "reason").unwrap_or_default();
     service.cancel_job(id, reason).await.map(Json).map_err(|e| refuse(&service, e))

@@ -4,21 +4,10 @@
 // serde_json's `json!` recurses once per token tree; the OpenAPI document needs more than 128.
 #![recursion_limit = "256"]
 
-mod api;
-mod auth;
-mod buffer;
-mod decode;
-mod error;
 mod grpc;
 mod http;
-mod jobs;
-mod metrics;
 mod openapi;
-mod registry;
-mod service;
-mod store;
 mod tls;
-mod worker;
 
 use std::{net::SocketAddr, path::PathBuf, sync::Arc, time::Duration};
 
@@ -29,7 +18,7 @@ use tracing_subscriber::EnvFilter;
 
 use udapose_engine::{adapt::AdaptConfig, gate::GateConfig};
 
-use crate::{
+use udapose_service::{
     auth::Tokens,
     buffer::Buffer,
     decode::DecodeLimits,
@@ -38,9 +27,10 @@ use crate::{
     registry::Registry,
     service::{Limits, Service},
     store::{S3Options, Store},
-    tls::{Listener, TlsFiles, TlsListener},
     worker::WorkerConfig,
 };
+
+use crate::tls::{Listener, TlsFiles, TlsListener};
 
 /// udapose pose-estimation service: gRPC and HTTP on separate addresses.
 #[derive(Debug, Parser)]

@@ -692,11 +692,8 @@ impl Jobs {
                 if cancel.load(Ordering::Acquire) {
                     return ControlFlow::Break(());
                 }
-                // Judged by the source model's eyes: after AdaBN almost anything fires.
                 if let Event::Round(r) = event
-                    && r.round == 1
-                    && let seen = r.source_fired_ratio.unwrap_or(r.fired_ratio_before)
-                    && seen < min_fired
+                    && let Some(seen) = self.config.gate.target_mismatch(r)
                 {
                     mismatch = Some(seen);
                     return ControlFlow::Break(());

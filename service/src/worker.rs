@@ -13,10 +13,10 @@ use crossbeam_channel::{Receiver, RecvTimeoutError};
 use tch::Device;
 use tokio::sync::oneshot;
 use udapose_engine::{
-    checkpoint::{self, Model},
-    estimator::{self, SolverMesh},
+    checkpoint,
+    estimator::{Estimator, PoseEstimate},
     input::{self, Crop, CropBox, Rgb8Image},
-    solver::{Estimate, SolverConfig},
+    solver::SolverConfig,
 };
 
 use crate::{
@@ -69,17 +69,14 @@ pub struct WorkerAnswer {
 /// A model as one worker holds it.
 struct Loaded {
     active: Arc<ActiveVersion>,
-    model: Model,
-    solver_mesh: SolverMesh,
-    config: SolverConfig,
+    estimator: Estimator,
 }
 
 impl Loaded {
     fn load(active: Arc<ActiveVersion>, device: Device) -> Result<Self> {
         let model =
             checkpoint::load(&active.dir, device).with_context(|| format!("loading {}", active.dir.display()))?;
-        let solver_mesh = SolverMesh::from_neural_mesh(&model.neural_mesh)?;
-        Ok(Loaded { active, model, solver_mesh, config: SolverConfig::default() })
+        Ok(Loaded { active, estimator: Estimator::new(model, SolverConfig::default())? })
     }
 }
 
@@ -130,7 +127,7 @@ fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: 
         depth.set(rx.len() as i64);
         let crops: usize = batch.iter().map(Job::crops).sum();
         batch_sizes.observe(crops as f64);
-        process(&loaded, batch, config.device);
+        process(&loaded, batch);
     }
 }
 
@@ -181,7 +178,7 @@ struct Pending {
     crop_ms: f64,
 }
 
-fn process(loaded: &Loaded, batch: Vec<Job>, device: Device) {
+fn process(loaded: &Loaded, batch: Vec<Job>) {
     let mut pending = Vec::with_capacity(batch.len());
     for job in batch {
         let started = Instant::now();
@@ -206,7 +203,7 @@ fn process(loaded: &Loaded, batch: Vec<Job>, device: Device) {
         return;
     }
     let crops: Vec<&Crop> = pending.iter().flat_map(|p| &p.crops).collect();
-    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops, device)));
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops)));
     let (mut results, backbone_ms) = match outcome {
         Ok(Ok(r)) => r,
         Ok(Err(e)) => (crops.iter().map(|_| Err(e.clone())).collect(), 0.0),
@@ -246,50 +243,41 @@ type CropResult = Result<(PoseAnswer, f64), ApiError>;
 /// The backbone over each crop, then the solver per crop. Returns each crop's answer and
 /// solver time, and the backbone's time.
 ///
-/// One forward pass per crop, not one over the batch: libtorch's CPU convolutions are not
-/// batch-invariant (~1e-6 in the features), and the solver turns that into answers up to a
-/// radian apart when two hypotheses nearly tie (measured in tests/tests/concurrency.rs). Per
-/// crop, an answer is bit-identical whatever else was batched with it (ARCHITECTURE.md asks
-/// for 1e-4 rad); batching still amortises the queue and the model switch.
-fn infer(loaded: &Loaded, crops: &[&Crop], device: Device) -> Result<(Vec<CropResult>, f64), ApiError> {
+/// One forward pass per crop ([`Estimator::features`]), so an answer is bit-identical whatever
+/// else was batched with it (ARCHITECTURE.md asks for 1e-4 rad); batching still amortises the
+/// queue and the model switch.
+fn infer(loaded: &Loaded, crops: &[&Crop]) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
-    let mut features = Vec::with_capacity(crops.len());
-    for crop in crops {
-        features.extend(estimator::features(&loaded.model.backbone, &crop.tensor().to_device(device))?);
-    }
+    let features = loaded.estimator.features(crops)?;
     let backbone_ms = ms(started.elapsed());
-    let [h, w] = loaded.active.manifest.crop;
-    let camera = udapose_engine::Camera::for_crop(h, w)?;
     let results = crops
         .iter()
         .zip(&features)
         .map(|(crop, f)| {
             let t = Instant::now();
-            let nm = &loaded.model.neural_mesh;
-            let estimate = estimator::estimate(&nm.mesh, &loaded.solver_mesh, f, &camera, &loaded.config)?;
-            let answer = answer(loaded, crop, &estimate)?;
-            Ok((answer, ms(t.elapsed())))
+            let estimate = loaded.estimator.estimate_features(crop, f)?;
+            Ok((answer(loaded, estimate), ms(t.elapsed())))
         })
         .collect();
     Ok((results, backbone_ms))
 }
 
-fn answer(loaded: &Loaded, crop: &Crop, e: &Estimate) -> Result<PoseAnswer, ApiError> {
-    let p = e.pose;
-    let r = p.rotation();
-    let corners = crop.project_cuboid(&loaded.active.manifest.cuboid, &p)?;
-    let b = crop.crop_box;
-    Ok(PoseAnswer {
+fn answer(loaded: &Loaded, e: PoseEstimate) -> PoseAnswer {
+    let p = e.estimate.pose;
+    let [azimuth_deg, elevation_deg, theta_deg] = e.degrees;
+    let b = e.crop_box;
+    PoseAnswer {
         azimuth: p.azimuth,
         elevation: p.elevation,
         theta: p.theta,
-        azimuth_deg: p.azimuth.to_degrees(),
-        elevation_deg: p.elevation.to_degrees(),
-        theta_deg: p.theta.to_degrees(),
+        azimuth_deg,
+        elevation_deg,
+        theta_deg,
         distance: p.distance,
-        rotation: (0..9).map(|i| r[(i / 3, i % 3)]).collect(),
-        score: e.score,
+        rotation: e.rotation.to_vec(),
+        score: e.estimate.score,
         hypotheses: e
+            .estimate
             .hypotheses
             .iter()
             .map(|h| HypothesisAnswer {
@@ -301,9 +289,9 @@ fn answer(loaded: &Loaded, crop: &Crop, e: &Estimate) -> Result<PoseAnswer, ApiE
             })
             .collect(),
         crop_box: BoxAnswer { x0: b.x0, y0: b.y0, x1: b.x1, y1: b.y1 },
-        cuboid: corners.iter().flatten().copied().collect(),
+        cuboid: e.cuboid.iter().flatten().copied().collect(),
         model_version: loaded.active.version.clone(),
-    })
+    }
 }
 
 fn ms(d: Duration) -> f64 {

@@ -70,21 +70,6 @@ impl ApiError {
         }
     }
 
-    pub fn grpc_code(&self) -> tonic::Code {
-        match self {
-            ApiError::InvalidArgument(_) => tonic::Code::InvalidArgument,
-            ApiError::NotFound(_) => tonic::Code::NotFound,
-            ApiError::TooLarge(_) => tonic::Code::ResourceExhausted,
-            ApiError::Unavailable { .. } => tonic::Code::Unavailable,
-            ApiError::Unauthenticated(_) => tonic::Code::Unauthenticated,
-            ApiError::PermissionDenied(_) => tonic::Code::PermissionDenied,
-            ApiError::Aborted(_) => tonic::Code::Aborted,
-            ApiError::FailedPrecondition(_) => tonic::Code::FailedPrecondition,
-            ApiError::DeadlineExceeded(_) => tonic::Code::DeadlineExceeded,
-            ApiError::Internal(_) => tonic::Code::Internal,
-        }
-    }
-
     pub fn retry_after(&self) -> Option<Duration> {
         match self {
             ApiError::Unavailable { retry_after, .. } => Some(*retry_after),

@@ -19,6 +19,12 @@ pub struct Metrics {
     pub stage: HistogramVec,
 }
 
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics::new()
+    }
+}
+
 impl Metrics {
     pub fn new() -> Self {
         let registry = Registry::new_custom(Some("udapose".into()), None).expect("a valid prefix");

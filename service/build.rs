@@ -1,0 +1,5 @@
+include!("../engine/torch_link.rs");
+
+fn main() {
+    link_torch();
+}
