@@ -38,7 +38,7 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
         Server::config("batching").quick_model().arg("--max-batch").arg("8").arg("--max-delay-ms").arg("20").start();
     let alone = runtime.block_on(sequential(&server, &images));
     let answers = runtime.block_on(hammer(&server, &images, CLIENTS, 3));
-    // Each crop has its own backbone pass (server/src/worker.rs), so batching changes nothing.
+    // Each crop has its own backbone pass (engine::estimator::Estimator::features), so batching changes nothing.
     for (i, p) in &answers {
         assert_eq!(bits(p), bits(&alone[*i]), "image {i}: a batched answer differs from the answer alone");
     }
