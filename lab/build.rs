@@ -14,7 +14,10 @@ fn embed_commit() {
     };
     let commit = git(&["rev-parse", "--short", "HEAD"]).unwrap_or_else(|| "unknown".into());
     println!("cargo:rustc-env=UDAPOSE_BUILD_COMMIT={commit}");
-    if let Some(dir) = git(&["rev-parse", "--absolute-git-dir"]) {
+    // A linked worktree keeps its HEAD in its own git dir and the branches in the common one.
+    let dirs =
+        [git(&["rev-parse", "--absolute-git-dir"]), git(&["rev-parse", "--path-format=absolute", "--git-common-dir"])];
+    for dir in dirs.iter().flatten() {
         for path in ["HEAD", "refs/heads", "packed-refs"] {
             println!("cargo:rerun-if-changed={dir}/{path}");
         }

@@ -66,7 +66,7 @@ pub fn state_name(state: i32) -> String {
 /// The server rejected the image only because the category's buffer is full (worth resending
 /// once a job has used buffered images).
 pub fn buffer_full(ack: &TargetAck) -> bool {
-    ack.status == target_ack::Status::Rejected as i32 && ack.reason.starts_with("BUFFER_FULL")
+    ack.status == target_ack::Status::Rejected as i32 && ack.rejection == target_ack::Rejection::BufferFull as i32
 }
 
 /// A fresh random id for [`Client::start_job`], which makes the call safe to retry.
@@ -487,7 +487,14 @@ mod tests {
     }
 
     fn ack(image: &[u8], status: AckStatus, reason: &str) -> TargetAck {
-        TargetAck { sha256: sha(image), status: status as i32, reason: reason.into(), ..Default::default() }
+        use target_ack::Rejection;
+        let rejection = match (status, reason.split(':').next()) {
+            (AckStatus::Rejected, Some("BUFFER_FULL")) => Rejection::BufferFull,
+            (AckStatus::Rejected, _) => Rejection::InvalidImage,
+            _ => Rejection::Unspecified,
+        };
+        let (sha256, status, rejection) = (sha(image), status as i32, rejection as i32);
+        TargetAck { sha256, status, rejection, reason: reason.into(), ..Default::default() }
     }
 
     fn ledger_with(n: usize) -> Ledger {

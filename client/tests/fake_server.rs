@@ -19,7 +19,8 @@ use tonic::{
     transport::{Server, server::TcpIncoming},
 };
 use udapose_client::{
-    AdaptOverrides, Client, ClientOptions, GateCriterion, Job, JobEvent, JobState, TargetAck, Upload, target_ack,
+    AdaptOverrides, Client, ClientOptions, GateCriterion, Job, JobEvent, JobState, TargetAck, Upload,
+    target_ack::{self, Rejection},
 };
 use udapose_proto::v1::{
     CancelJobRequest, GetJobRequest, ListJobsRequest, ListJobsResponse, StartJobRequest, TargetImage, WatchJobRequest,
@@ -106,23 +107,28 @@ impl AdaptationService for Svc {
                         s.stored.insert(id);
                         Err(Status::unavailable("going away"))
                     } else {
-                        let (status, reason) = if s.stored.contains(&id) {
-                            (target_ack::Status::Duplicate, String::new())
+                        let (status, rejection, reason) = if s.stored.contains(&id) {
+                            (target_ack::Status::Duplicate, Rejection::Unspecified, String::new())
                         } else if s.stored.len() >= s.capacity {
                             s.full_rejections += 1;
                             if s.grow_after_full == Some(s.full_rejections) {
                                 s.capacity += 100;
                             }
-                            (target_ack::Status::Rejected, "BUFFER_FULL: no room".to_owned())
+                            (target_ack::Status::Rejected, Rejection::BufferFull, "BUFFER_FULL: no room".to_owned())
                         } else if image.image.starts_with(b"bad") {
-                            (target_ack::Status::Rejected, "INVALID_IMAGE: cannot decode".to_owned())
+                            (
+                                target_ack::Status::Rejected,
+                                Rejection::InvalidImage,
+                                "INVALID_IMAGE: cannot decode".to_owned(),
+                            )
                         } else {
                             s.stored.insert(id.clone());
-                            (target_ack::Status::Accepted, String::new())
+                            (target_ack::Status::Accepted, Rejection::Unspecified, String::new())
                         };
                         Ok(TargetAck {
                             sha256: id,
                             status: status as i32,
+                            rejection: rejection as i32,
                             reason,
                             buffered: s.stored.len() as u32,
                             capacity: s.capacity as u32,

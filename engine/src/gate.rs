@@ -140,9 +140,15 @@ impl GateConfig {
     /// images do not look like the category), else `None`. Judged by the source model's eyes:
     /// after AdaBN almost anything fires. Later rounds are never judged.
     pub fn target_mismatch(&self, round: &RoundReport) -> Option<f64> {
-        let seen = round.source_fired_ratio.unwrap_or(round.fired_ratio_before);
+        let seen = target_fired(round);
         (round.round == 1 && seen < self.min_target_fired).then_some(seen)
     }
+}
+
+/// What the target check reads off a round's report: the share of visible vertices that fire
+/// to the unchanged model (before the BatchNorm step when the report has it).
+pub fn target_fired(round: &RoundReport) -> f64 {
+    round.source_fired_ratio.unwrap_or(round.fired_ratio_before)
 }
 
 /// One held-out image as one model sees it.

@@ -434,10 +434,8 @@ fn quick_images(data: &std::path::Path, n: usize) -> Tensor {
 /// itself, and a collapsed candidate (every vertex feature the same) is rejected by its margin.
 #[test]
 fn measure_on_the_quick_model() {
-    let (Some(model_dir), Some(data)) = (env_path("UDAPOSE_QUICK_MODEL"), env_path("UDAPOSE_QUICK_DATA")) else {
-        eprintln!("UDAPOSE_QUICK_MODEL / UDAPOSE_QUICK_DATA not set (make test sets them): skipped");
-        return;
-    };
+    let need = |var: &str| env_path(var).unwrap_or_else(|| panic!("{var} is not set: run the tests with `make test`"));
+    let (model_dir, data) = (need("UDAPOSE_QUICK_MODEL"), need("UDAPOSE_QUICK_DATA"));
     let model = checkpoint::load(&model_dir, Device::Cpu).unwrap();
     let images = quick_images(&data, 12);
     let config = GateConfig { margin_gain: 0.0, ..fast_config() };

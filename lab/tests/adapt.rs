@@ -81,7 +81,18 @@ fn quick_report_adapts_combined_without_collapsing() {
             assert!(m[k].is_number() && m[format!("{k}_ci")].is_array(), "{v}.{k}");
         }
     }
-    assert!(d["gap_closed"].is_number() || d["gap_closed"].is_null());
+    // Gap closed = (adapted − source) / (oracle − source) on Acc@π/6, null when the oracle
+    // gains less than the report's MIN_GAP (0.05).
+    let acc = |v: &str| d[v]["acc_pi_6"].as_f64().unwrap();
+    let gap = acc("oracle") - acc("source");
+    if gap < 0.05 {
+        assert!(d["gap_closed"].is_null(), "oracle gains {gap:.3}: {}", d["gap_closed"]);
+    } else {
+        let closed = d["gap_closed"].as_f64().unwrap();
+        assert!((closed - (acc("adapted") - acc("source")) / gap).abs() < 1e-9, "gap closed {closed}");
+        let ci: Vec<f64> = d["gap_closed_ci"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        assert!(ci.len() == 2 && ci[0] <= ci[1], "{ci:?}");
+    }
     assert!(d["adapt_seconds"].as_f64().unwrap() > 0.0);
 
     // The fired-vertex ratio rises over the run, and the adapted model does not collapse. The

@@ -164,7 +164,12 @@ fn npz_writes_are_deterministic_round_trip_and_match_the_python_checked_file() {
     }
     let golden = fixtures().join("npz/rust_written.npz");
     if std::env::var_os("UDAPOSE_BLESS").is_some() {
+        // A blessing run never passes: the new file is checked by NumPy, then by a plain run.
         fs::write(&golden, &first).unwrap();
+        panic!(
+            "wrote {}; check it with `make_dataset_fixtures.py --check-rust`, then rerun without UDAPOSE_BLESS",
+            golden.display()
+        );
     }
     // The same bytes as the file `make_dataset_fixtures.py --check-rust` loaded with np.load.
     assert_eq!(first, fs::read(&golden).unwrap(), "rerun with UDAPOSE_BLESS=1 and --check-rust");

@@ -34,9 +34,12 @@ fn the_quick_model_loads_with_its_provenance() {
     let curve = m.training["validation_curve"].as_array().unwrap();
     assert_eq!(curve.len() as u64, m.training["epochs"].as_u64().unwrap(), "one validation point per epoch");
     for p in curve {
-        let acc = p["val"]["acc_pi_6"].as_f64().unwrap();
-        assert!((0.0..=1.0).contains(&acc) && p["val"]["n"] == 60);
+        assert_eq!(p["val"]["n"], 60);
     }
+    // The recipe learns: measured 0.53 after epoch 2 and 0.73-0.80 after epoch 6 over several
+    // runs; chance is under 0.01, a model that never left its initialisation about that.
+    let last = curve.last().unwrap()["val"]["acc_pi_6"].as_f64().unwrap();
+    assert!(last >= 0.6, "final validation Acc@π/6 {last:.3}");
     assert!(m.training["command"].as_str().unwrap().contains("train"));
     // τ from the training set's cosines; R̄ a mean resultant length.
     let tau = &model.neural_mesh.tau;
@@ -56,15 +59,19 @@ fn eval_reports_every_requested_domain() {
         ["eval", "--model", model.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
     lab(&[&args[..], &["--domains", "source,occ-l2", "--limit", "20"]].concat());
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let acc = |d: &str| report["domains"][d]["acc_pi_6"].as_f64().unwrap();
     for d in ["source", "occ-l2"] {
         let m = &report["domains"][d];
         assert_eq!(m["n"], 20, "{d}");
-        for k in ["acc_pi_6", "acc_pi_18"] {
-            assert!((0.0..=1.0).contains(&m[k].as_f64().unwrap()));
-        }
         assert!(m["acc_pi_18"].as_f64() <= m["acc_pi_6"].as_f64());
         assert!((0.0..=180.0).contains(&m["med_err_deg"].as_f64().unwrap()));
+        // Acc@π/6 is the share of per-image errors under 30°.
+        let errors: Vec<f64> = m["errors_deg"].as_array().unwrap().iter().map(|e| e.as_f64().unwrap()).collect();
+        assert_eq!(errors.len(), 20);
+        assert_eq!(acc(d), errors.iter().filter(|&&e| e < 30.0).count() as f64 / 20.0, "{d}");
     }
+    // Measured 0.70 (source) and 0.20 (occ-l2) on these 20 images; chance is under 0.01.
+    assert!(acc("source") >= 0.4 && acc("source") > acc("occ-l2"), "source {} occ-l2 {}", acc("source"), acc("occ-l2"));
     let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
     assert!(md.contains("| occ-l2 |"));
     let missing = lab_fails(&[

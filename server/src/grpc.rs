@@ -25,7 +25,7 @@ use udapose_service::{
     auth::Role,
     buffer::AckStatus,
     error::ApiError,
-    jobs::{JobEvent, JobState, JobView, Overrides, TargetAck},
+    jobs::{JobEvent, JobState, JobView, Overrides, Rejection, TargetAck},
     service::{ActivationView, Service},
     views::{self, ModelSummary},
 };
@@ -257,6 +257,7 @@ impl AdaptationService for Api {
                         Ok(ack) => to_ack(ack),
                         Err(e) => pb::TargetAck {
                             status: pb::target_ack::Status::Rejected as i32,
+                            rejection: pb::target_ack::Rejection::Refused as i32,
                             reason: format!("{}: {e}", e.code_name()),
                             ..Default::default()
                         },
@@ -322,9 +323,16 @@ fn to_ack(a: TargetAck) -> pb::TargetAck {
         AckStatus::Duplicate => S::Duplicate,
         AckStatus::Rejected => S::Rejected,
     };
+    let rejection = match a.rejection {
+        None => pb::target_ack::Rejection::Unspecified,
+        Some(Rejection::InvalidImage) => pb::target_ack::Rejection::InvalidImage,
+        Some(Rejection::BufferFull) => pb::target_ack::Rejection::BufferFull,
+        Some(Rejection::Storage) => pb::target_ack::Rejection::Storage,
+    };
     pb::TargetAck {
         sha256: a.sha256,
         status: status as i32,
+        rejection: rejection as i32,
         reason: a.reason,
         buffered: a.buffered as u32,
         capacity: a.capacity as u32,

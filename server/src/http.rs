@@ -280,7 +280,7 @@ async fn put_targets(
     for image in images {
         results.push(service.put_target(&category, image).await.map_err(|e| refuse(&service, e))?);
     }
-    let full = results.iter().any(|a| a.reason.starts_with("BUFFER_FULL"));
+    let full = results.iter().any(|a| a.rejection == Some(udapose_service::jobs::Rejection::BufferFull));
     let mut response = Json(json!({ "results": results })).into_response();
     if full {
         response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from_static("10"));

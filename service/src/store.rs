@@ -195,6 +195,11 @@ impl Store {
         Self::with_objects(objects, local, cache, url)
     }
 
+    /// A store held in memory (for tests and dry runs): nothing survives the process.
+    pub fn in_memory(cache: &Path) -> Result<Self> {
+        Store::with_objects(Arc::new(object_store::memory::InMemory::new()), None, cache, "memory://")
+    }
+
     fn with_objects(objects: Arc<dyn ObjectStore>, local: Option<PathBuf>, cache: &Path, url: &str) -> Result<Self> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)

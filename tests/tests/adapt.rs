@@ -428,6 +428,7 @@ fn the_buffer_and_the_roles_refuse_clearly() {
     assert_eq!(r.header("retry-after"), Some("10"));
     let full = ack(r);
     assert!(full["status"] == "REJECTED" && full["reason"].as_str().unwrap().starts_with("BUFFER_FULL"), "{full}");
+    assert_eq!(full["rejection"], "BUFFER_FULL", "{full}");
     assert_eq!(post("/v1/adapt/nope/images", &write, &images[2].bytes).status, 404);
 
     // Too few images for a job; nothing to roll back to; unknown job and version.

@@ -45,10 +45,11 @@ fn http_and_grpc_agree_exactly_and_are_accurate() {
     for (i, (served, offline)) in errors.iter().zip(&offline).enumerate() {
         assert!((served.to_degrees() - offline).abs() < 1e-6, "image {i}: {} vs {offline} deg", served.to_degrees());
     }
-    // The quick model (6 epochs on 64x160 crops) reaches about 0.75 on its validation split
-    // and still confuses front and back; chance (uniform rotations) is under 0.01.
+    // The quick model (6 epochs on 64x160 crops) reaches 0.73-0.80 on its validation split and
+    // 0.70-0.73 on these test images (make test's eval, several runs); chance (uniform
+    // rotations) is under 0.01, and a front/back flip of every image would give about 0.
     let acc = errors.iter().filter(|e| **e < std::f64::consts::PI / 6.0).count() as f64 / errors.len() as f64;
-    assert!(acc >= 0.2, "Acc@pi/6 {acc:.3} over {IMAGES} images; errors (deg) {:?}", degrees(&errors));
+    assert!(acc >= 0.5, "Acc@pi/6 {acc:.3} over {IMAGES} images; errors (deg) {:?}", degrees(&errors));
 
     runtime.block_on(stream_matches_unary(&client, &images[..4]));
     runtime.block_on(raw_pixels_and_boxes(&client, &images[0]));

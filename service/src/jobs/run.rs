@@ -1,0 +1,201 @@
+//! One job's work: adapt, save, validate, activate.
+
+use std::{
+    ops::ControlFlow,
+    sync::atomic::{AtomicBool, Ordering},
+    time::Instant,
+};
+
+use anyhow::{Context, Result, anyhow};
+use serde_json::json;
+use tch::Tensor;
+use udapose_engine::{
+    EngineError,
+    adapt::{self, Event},
+    checkpoint::{self, Manifest},
+    gate,
+    input::{self, Rgb8Image},
+};
+
+use super::{JobSpec, JobState, Jobs};
+use crate::{
+    decode,
+    store::{StoreError, failpoint},
+};
+
+impl Jobs {
+    /// Adapt, save, validate, activate; every terminal event but CANCELLED and FAILED is
+    /// written here.
+    pub(super) fn execute(&self, spec: &JobSpec, cancel: &AtomicBool) -> Result<()> {
+        let id = spec.job_id.as_str();
+        let mut config = self.config.adapt.clone();
+        let o = &spec.overrides;
+        config.max_rounds = o.max_rounds.map_or(config.max_rounds, |r| r as usize);
+        config.lr = o.learning_rate.unwrap_or(config.lr);
+        config.seed = o.seed.unwrap_or(config.seed);
+        let max_rounds = config.max_rounds as u32;
+        self.append(id, JobState::Running, |e| {
+            e.message = format!("adapting {} on {} images", spec.source_version, spec.train.len());
+            e.max_rounds = max_rounds;
+        })?;
+        let source_dir = self.store.version_dir(&spec.category, &spec.source_version)?;
+        let source = checkpoint::load(&source_dir, self.config.device)
+            .with_context(|| format!("loading {}", source_dir.display()))?;
+        let crop = source.manifest.crop;
+        let saved = match self.store.manifest(&spec.category, &spec.version) {
+            Ok(_) => true,
+            Err(StoreError::UnknownVersion { .. }) => false,
+            Err(e) => return Err(e.into()),
+        };
+        if saved {
+            tracing::info!(job = %id, "version {} was saved before a restart; validating it", spec.version);
+        } else {
+            let train = self.images(&spec.category, &spec.train, crop)?;
+            let started = Instant::now();
+            // Set when the images do not look like the category (see GateConfig::min_target_fired).
+            let mut mismatch = None;
+            let min_fired = self.config.gate.min_target_fired;
+            let mut on_event = |event: Event| {
+                if cancel.load(Ordering::Acquire) {
+                    return ControlFlow::Break(());
+                }
+                if let Event::Round(r) = event
+                    && r.round == 1
+                {
+                    let seen = 100.0 * gate::target_fired(r);
+                    let (model, min) = (&spec.source_version, 100.0 * min_fired);
+                    tracing::info!(job = %id, "target check: {seen:.2}% of visible vertices fire to {model} (at least {min:.2}% needed)");
+                }
+                if let Event::Round(r) = event
+                    && let Some(seen) = self.config.gate.target_mismatch(r)
+                {
+                    mismatch = Some(seen);
+                    return ControlFlow::Break(());
+                }
+                if let Event::Round(r) = event {
+                    let per_round = started.elapsed().as_secs_f64() / r.round as f64;
+                    let result = self.append(id, JobState::Running, |e| {
+                        e.message = format!("round {} of at most {max_rounds}", r.round);
+                        e.round = r.round as u32;
+                        e.fired_ratio = r.fired_ratio;
+                        e.pose_change_median_deg = r.pose_change_median_deg;
+                        e.eta_seconds = per_round * (max_rounds as f64 - r.round as f64).max(0.0);
+                    });
+                    if let Err(e) = result {
+                        tracing::error!(job = %id, "{e:#}");
+                        return ControlFlow::Break(());
+                    }
+                }
+                ControlFlow::Continue(())
+            };
+            let adapted = adapt::adapt(&source, &train, &config, &mut on_event);
+            drop(train);
+            if let Some(fired) = mismatch {
+                self.append(id, JobState::Rejected, |e| {
+                    e.message = format!(
+                        "the target images do not look like {} to {}: {:.1}% of visible vertices fire \
+                         (at least {:.1}% needed); nothing was saved",
+                        spec.category,
+                        spec.source_version,
+                        100.0 * fired,
+                        100.0 * min_fired
+                    );
+                    e.fired_ratio = fired;
+                })?;
+                return Ok(());
+            }
+            let adapted = adapted?;
+            let manifest = Manifest {
+                version: spec.version.clone(),
+                training: json!({
+                    "kind": "3duda-online",
+                    "job_id": id,
+                    "source_version": spec.source_version,
+                    "source_training": source.manifest.training,
+                    "config": config,
+                    "images": spec.train.len(),
+                    "rounds": adapted.rounds,
+                    "converged": adapted.converged,
+                    "backbone_steps": adapted.backbone_steps,
+                }),
+                // f32: f16 would round the small updates of adaptation away (METHOD.md §7.6).
+                dtype: "f32".into(),
+                metrics: serde_json::Value::Null,
+                files: Default::default(),
+                ..source.manifest.clone()
+            };
+            self.store.put_version(&spec.category, &spec.version, |dir| {
+                checkpoint::save(dir, &manifest, &adapted.vs, &adapted.neural_mesh).map_err(|e| e.to_string())
+            })?;
+        }
+        self.append(id, JobState::Validating, |e| {
+            e.message = format!("saved {}; validating on {} held-out images", spec.version, spec.held_out.len());
+            e.version = spec.version.clone();
+        })?;
+
+        let candidate_dir = self.store.version_dir(&spec.category, &spec.version)?;
+        let candidate = checkpoint::load(&candidate_dir, self.config.device)
+            .with_context(|| format!("loading {}", candidate_dir.display()))?;
+        let held_out = self.images(&spec.category, &spec.held_out, crop)?;
+        let mut check = |_: usize, _: usize| {
+            if cancel.load(Ordering::Acquire) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+        };
+        let before = gate::measure(&source, &held_out, &self.config.gate, &mut check)?;
+        let after = gate::measure(&candidate, &held_out, &self.config.gate, &mut check)?;
+        let decision = gate::decide(&before, &after, &self.config.gate)?;
+        if !decision.passed && self.config.enforce_gate {
+            self.append(id, JobState::Rejected, |e| {
+                e.message = format!("the gate kept {} inactive: {}", spec.version, decision.reason());
+                e.gate = decision.criteria.clone();
+            })?;
+            return Ok(());
+        }
+        let reason = if decision.passed {
+            format!("job {id}: passed the validation gate")
+        } else {
+            format!("job {id}: activated by --gate advisory although the gate failed: {}", decision.reason())
+        };
+        let actor = format!("job:{id}");
+        failpoint("before-activate");
+        let activated =
+            self.store.activate(&spec.category, &spec.version, &actor, &reason, Some(spec.source_generation), Some(id));
+        match activated {
+            Ok(generation) => {
+                self.registry.refresh();
+                self.append(id, JobState::Activated, |e| {
+                    e.message = format!("activated {} as generation {generation}", spec.version);
+                    e.gate = decision.criteria.clone();
+                })?;
+            }
+            Err(StoreError::Conflict { found, .. }) => {
+                tracing::warn!(job = %id, "activation conflict: generation {found} is active, the job started from {}", spec.source_generation);
+                self.append(id, JobState::Superseded, |e| {
+                    e.message = format!(
+                        "passed the gate, but generation {found} was activated since the job started from {}",
+                        spec.source_generation
+                    );
+                    e.gate = decision.criteria.clone();
+                })?;
+            }
+            Err(e) => return Err(e.into()),
+        }
+        Ok(())
+    }
+
+    /// Buffered images as the model's crops (N×3×H×W in [0, 1]).
+    pub(super) fn images(&self, category: &str, shas: &[String], crop: [usize; 2]) -> Result<Tensor> {
+        let [h, w] = crop;
+        let mut pixels = Vec::with_capacity(shas.len() * 3 * h * w);
+        for sha in shas {
+            let bytes = self.buffer.read(category, sha).with_context(|| format!("reading buffered image {sha}"))?;
+            let decoded = decode::decode(&bytes, self.config.decode).map_err(|e| anyhow!("image {sha}: {e}"))?;
+            let image = Rgb8Image::new(&decoded.rgb8, decoded.width, decoded.height)?;
+            pixels.extend(input::crop(&image, None, crop)?.pixels);
+        }
+        Ok(Tensor::from_slice(&pixels).view([shas.len() as i64, 3, h as i64, w as i64]))
+    }
+}
+
+pub(super) fn is_cancelled(e: &anyhow::Error) -> bool {
+    matches!(e.downcast_ref::<EngineError>(), Some(EngineError::Cancelled))
+}
