@@ -52,20 +52,27 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test build venv lite-weights assets browser quick-data quick-model bench bench-check bench-service bench-scale doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build venv lite-weights assets browser quick-data quick-model bench bench-check bench-service bench-scale doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
 
-test: build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(LITE_WEIGHTS) $(S3S_FS) quick-data quick-model
+# The end-to-end tests crash servers at named points (UDAPOSE_FAILPOINT): their binaries are built
+# with the hooks, which `make build` (serve, image) leaves out.
+TEST_FEATURES := --features udapose-service/failpoints
+
+test: test-build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(LITE_WEIGHTS) $(S3S_FS) quick-data quick-model
 	rm -rf $(TEST_TMP) && mkdir -p $(TEST_TMP)
 	TMPDIR=$(TEST_TMP) UDAPOSE_QUICK_DATA=$(QUICK_DATA) UDAPOSE_QUICK_MODEL=$(QUICK_MODEL) UDAPOSE_S3S_FS=$(S3S_FS) \
 		UDAPOSE_LITE_WEIGHTS=$(LITE_WEIGHTS) \
-		cargo test $(CARGO_FLAGS) --workspace
+		cargo test $(CARGO_FLAGS) --workspace $(TEST_FEATURES)
 	rm -rf $(TEST_TMP)
 
 build: venv
 	cargo build $(CARGO_FLAGS) --workspace
+
+test-build: venv
+	cargo build $(CARGO_FLAGS) --workspace $(TEST_FEATURES)
 
 venv: $(TORCH_STAMP)
 
@@ -109,7 +116,7 @@ browser:
 		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends chromium chromium-driver; \
 	fi
 
-quick-data: build assets $(CORRUPTIONS_STAMP)
+quick-data: test-build assets $(CORRUPTIONS_STAMP)
 	rm -rf $(QUICK_DATA)
 	$(BIN)/udapose-lab synth --profile quick --seed 0 --torcs $(TORCS_DIR) --out $(QUICK_DATA)
 
@@ -126,12 +133,12 @@ bench-check: venv
 
 # The inference service under load → reports/service.json and .md (needs data/syncar-ood-standard).
 bench-service: build
-	$(BIN)/udapose-lab bench service
+	$(BIN)/udapose-bench service
 
 # 1-3 serve replicas and an adapt worker on s3s-fs: throughput, faults, swap propagation →
 # reports/scale.json and .md.
 bench-scale: build $(S3S_FS)
-	$(BIN)/udapose-lab bench scale --s3s-fs $(S3S_FS)
+	$(BIN)/udapose-bench scale --s3s-fs $(S3S_FS)
 
 doctor: build
 	$(BIN)/udapose-lab doctor
@@ -150,11 +157,12 @@ deploy-check:
 
 # The container image localhost/udapose:$(IMAGE_VARIANT) (deploy/IMAGE.md): podman from Debian's
 # packages (installed when missing), a debian:bookworm-slim base made with debootstrap (cached),
-# the release binaries as they are (built only when missing: run `make build` to refresh them)
-# with exactly the libtorch libraries they load, then a smoke test of the image in a chroot.
+# the release binaries from `make build` (a no-op when up to date; after `make test` it rebuilds
+# them without the tests' failpoints) with exactly the libtorch libraries they load, then a smoke
+# test of the image in a chroot.
 # IMAGE_VARIANT=cuda: the CUDA variant (several GB).
 IMAGE_VARIANT ?= cpu
-image: $(if $(and $(wildcard $(BIN)/udapose-server),$(wildcard $(BIN)/udapose)),,build)
+image: build
 	deploy/image/setup.sh
 	UDAPOSE_CACHE=$(UDAPOSE_CACHE) deploy/image/base.sh
 	UDAPOSE_CACHE=$(UDAPOSE_CACHE) BIN_DIR=$(BIN) VARIANT=$(IMAGE_VARIANT) deploy/image/build.sh

@@ -1,17 +1,15 @@
 //! `udapose`: command-line client for a udapose server (gRPC).
 
+mod inputs;
 mod output;
 
-use std::{
-    io::Read,
-    path::{Path, PathBuf},
-    process::ExitCode,
-};
+use std::{path::PathBuf, process::ExitCode};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use output::{UploadSummary, is_image};
+use inputs::{expand, parse_box, read_input};
+use output::UploadSummary;
 use serde_json::{Value, json};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -501,46 +499,6 @@ async fn estimate(
         bail!("{failed} of {} images failed", files.len());
     }
     Ok(())
-}
-
-/// Files as given; folders become their images (sorted); `-` is stdin.
-fn expand(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            let mut images: Vec<PathBuf> = std::fs::read_dir(input)
-                .with_context(|| format!("listing {}", input.display()))?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| is_image(p))
-                .collect();
-            images.sort();
-            if images.is_empty() {
-                bail!("{} holds no PNG, JPEG or WebP files", input.display());
-            }
-            out.extend(images);
-        } else {
-            out.push(input.clone());
-        }
-    }
-    Ok(out)
-}
-
-fn read_input(path: &Path) -> Result<Vec<u8>> {
-    if path == Path::new("-") {
-        let mut bytes = Vec::new();
-        std::io::stdin().read_to_end(&mut bytes).context("reading stdin")?;
-        return Ok(bytes);
-    }
-    std::fs::read(path).with_context(|| format!("reading {}", path.display()))
-}
-
-fn parse_box(s: &str) -> Result<BoundingBox, String> {
-    let v: Vec<f64> =
-        s.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| e.to_string())?;
-    match v.as_slice() {
-        [x0, y0, x1, y1] => Ok(BoundingBox { x0: *x0, y0: *y0, x1: *x1, y1: *y1 }),
-        _ => Err(format!("expected x0,y0,x1,y1, got {s:?}")),
-    }
 }
 
 fn print_rows(name: &str, response: &EstimateResponse, width: usize) {

@@ -1,5 +1,5 @@
 //! `cargo bench -p udapose-engine --bench solver`: the render-and-compare solver on synthetic
-//! images whose pose is known (`udapose_engine::solver::synthetic`: the SynCar car cuboid with
+//! images whose pose is known (`udapose_testkit::synthetic`: the SynCar car cuboid with
 //! smooth random 128-D vertex features, poses from the SynCar source distribution, features
 //! rendered 2× finer than the grid, clutter-like background, Gaussian noise). Times the pieces
 //! of one image (similarity GEMM, one pose evaluation, multi-pose init, the full solve with each
@@ -13,11 +13,11 @@ mod common;
 use std::hint::black_box;
 use std::time::Instant;
 
-use udapose_engine::solver::synthetic::{ImageSettings, SplitMix64, SyntheticModel, render_features, source_pose};
 use udapose_engine::solver::{
     AdamConfig, Optimizer, PatternSearchConfig, Problem, Scratch, SolverConfig, multi_pose_init, solve,
 };
 use udapose_engine::{Camera, PoseMetrics, rotation_error};
+use udapose_testkit::synthetic::{ImageSettings, SplitMix64, SyntheticModel, render_features, source_pose};
 
 const DIM: usize = 128;
 

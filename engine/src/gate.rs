@@ -45,7 +45,7 @@ pub const MEASURE_BATCH: usize = 16;
 ///
 /// # How `margin_gain` was chosen: 0.001
 ///
-/// Measured with `udapose-lab bench gate` (reports/gate.md) on SynCar-OOD `standard`: per
+/// Measured with `udapose-bench gate` (reports/gate.md) on SynCar-OOD `standard`: per
 /// domain (15), the source model against its 3DUDA adaptation, both measured on the held-out
 /// bucket of the domain's *adapt* split (48–76 images). The labels serve only to score the
 /// choice: for each value of the grid 0, 0.001, 0.0025, 0.005, …, 0.05, how many domains'

@@ -3,14 +3,14 @@
 
 use udapose_engine::camera::fit_distance;
 use udapose_engine::raster::NO_FACE;
-use udapose_engine::solver::synthetic::{
-    ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
-};
 use udapose_engine::solver::{
     AdamConfig, FeatureMap, MeshModel, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch, SolverConfig,
     grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
 };
 use udapose_engine::{Camera, EngineError, Pose, Rasterizer, View, rotation_error};
+use udapose_testkit::synthetic::{
+    ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
+};
 
 const DIM: usize = 128;
 

@@ -2,12 +2,12 @@
 //! the synthetic problems of `solver::synthetic`: same loss and gradient direction as udapose's
 //! fast form, same starting poses, and it recovers known poses.
 
-use udapose_engine::solver::reference::{self, ReferenceConfig, ReferenceProblem};
-use udapose_engine::solver::synthetic::{
-    ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
-};
 use udapose_engine::solver::{AdamConfig, FeatureMap, Problem, Scratch, SolverConfig, multi_pose_init};
 use udapose_engine::{Camera, EngineError, Pose, Rasterizer, rotation_error};
+use udapose_testkit::reference::{self, ReferenceConfig, ReferenceProblem};
+use udapose_testkit::synthetic::{
+    ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
+};
 
 const DIM: usize = 128;
 

@@ -1,7 +1,6 @@
 //! `udapose-lab`: offline tools around the engine.
 
 mod adapt_cmd;
-mod bench_cmd;
 mod compare_cmd;
 mod corrupt_cmd;
 mod doctor;
@@ -45,8 +44,6 @@ enum Command {
     /// Source models side by side: accuracy from their eval reports, size, τ_r, fired ratios and
     /// costs measured in one run → reports/source-models.json and .md.
     Compare(compare_cmd::Args),
-    /// Benchmarks on real data: `bench solver` times udapose's solver against the autograd reference.
-    Bench(bench_cmd::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -60,6 +57,5 @@ fn main() -> anyhow::Result<()> {
         Command::Finetune(args) => adapt_cmd::run_finetune(&args),
         Command::Report(args) => report_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
-        Command::Bench(args) => bench_cmd::run(&args),
     }
 }

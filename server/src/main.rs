@@ -122,6 +122,10 @@ struct Args {
     /// (`StartJob` starts one sooner).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     adapt_min_images: u32,
+    /// Threads of the adaptation job's own solver pool (0: half the cores, at least 1). Serving
+    /// solves keep the global pool, so they never queue behind a job's batch of solves.
+    #[arg(long, default_value_t = 0)]
+    job_threads: usize,
     /// Listen on non-loopback addresses without a token (otherwise refused).
     #[arg(long)]
     allow_unauthenticated: bool,
@@ -210,6 +214,7 @@ async fn main() -> Result<()> {
             runs_jobs: args.role != Role::Serve,
             enforce_gate: args.gate == GatePolicy::Enforce,
             poll,
+            threads: if args.job_threads == 0 { (runtime.cpus / 2).max(1) } else { args.job_threads },
         },
     )
     .context("starting the adaptation jobs")?;
@@ -246,10 +251,13 @@ async fn main() -> Result<()> {
     Ok(())
 }
 
-/// Logs to stdout; `RUST_LOG` overrides the default `info` level.
+/// Logs to stdout; `RUST_LOG` overrides the default `info` level. Colours only on a terminal, so
+/// files and log collectors get plain text.
 fn init_tracing() {
+    use std::io::IsTerminal;
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    tracing_subscriber::fmt().with_env_filter(filter).init();
+    tracing_subscriber::fmt().with_env_filter(filter).with_ansi(std::io::stdout().is_terminal()).init();
+    udapose_service::store::check_failpoints();
 }
 
 async fn bind(addr: SocketAddr, what: &str) -> Result<TcpListener> {

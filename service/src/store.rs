@@ -505,7 +505,20 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 
 /// Crash-test hook: with `UDAPOSE_FAILPOINT=<name>` the process stops for good at the point of
 /// that name (logged), so a test can `kill -9` it exactly there; with `stop:<name>` it sends
-/// itself SIGSTOP there (a test resumes it with SIGCONT).
+/// itself SIGSTOP there (a test resumes it with SIGCONT). Only in builds with the `failpoints`
+/// feature, which the end-to-end tests turn on (tests/Cargo.toml) and release builds lack.
+#[cfg(not(feature = "failpoints"))]
+pub(crate) fn failpoint(_name: &str) {}
+
+/// Says at startup when `UDAPOSE_FAILPOINT` is set in a build that has no failpoints (it would
+/// otherwise be ignored without a word).
+pub fn check_failpoints() {
+    if cfg!(not(feature = "failpoints")) && std::env::var_os("UDAPOSE_FAILPOINT").is_some() {
+        tracing::warn!("UDAPOSE_FAILPOINT is set, but this build has no failpoints (`make test` builds them in)");
+    }
+}
+
+#[cfg(feature = "failpoints")]
 pub(crate) fn failpoint(name: &str) {
     let Ok(set) = std::env::var("UDAPOSE_FAILPOINT") else { return };
     if set == name {

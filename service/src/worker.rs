@@ -1,6 +1,7 @@
 //! Inference workers: threads that own their tch model copies, take jobs from their category's
 //! bounded queue, batch them (up to `max_batch` crops, waiting at most `max_delay` after the
-//! first), run the backbone once per batch and the solver per crop.
+//! first), then run the backbone and the solver per crop ([`Estimator`]): a batch amortises the
+//! queue and the model switch, not the backbone (see `infer`).
 
 use std::{
     panic::AssertUnwindSafe,

@@ -304,7 +304,8 @@ fn a_job_on_images_of_no_car_is_not_activated() {
     // Rejected at the first round, before any version is written: almost no vertex fires on
     // them (a stronger model's score margin may still rise a little on such images, so the gate
     // alone would not be enough).
-    assert_eq!(j["state"], "REJECTED", "{j}");
+    let check = || server.log().lines().filter(|l| l.contains("target check")).collect::<Vec<_>>().join("\n");
+    assert_eq!(j["state"], "REJECTED", "{j}\n{}", check());
     let reason = j["reason"].as_str().unwrap();
     assert!(reason.contains("do not look like car"), "{reason}");
     assert!(j["last_event"]["fired_ratio"].as_f64().unwrap() < 0.02, "{j}");

@@ -26,7 +26,7 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
     // 1. No batching: bit-identical under concurrency.
     let server = Server::config("concurrency").quick_model().arg("--max-batch").arg("1").start();
     let alone = runtime.block_on(sequential(&server, &images));
-    let answers = runtime.block_on(hammer(&server, &images, CLIENTS, REQUESTS));
+    let answers = runtime.block_on(hammer(&server, &images, CLIENTS, REQUESTS, 0));
     assert_eq!(answers.len(), CLIENTS * REQUESTS);
     for (i, p) in answers {
         assert_eq!(bits(&p), bits(&alone[i]), "image {i}: concurrent answer differs from the sequential one");
@@ -37,7 +37,7 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
     let server =
         Server::config("batching").quick_model().arg("--max-batch").arg("8").arg("--max-delay-ms").arg("20").start();
     let alone = runtime.block_on(sequential(&server, &images));
-    let answers = runtime.block_on(hammer(&server, &images, CLIENTS, 3));
+    let answers = runtime.block_on(hammer(&server, &images, CLIENTS, 3, 0));
     // Each crop has its own backbone pass (engine::estimator::Estimator::features), so batching changes nothing.
     for (i, p) in &answers {
         assert_eq!(bits(p), bits(&alone[*i]), "image {i}: a batched answer differs from the answer alone");
@@ -85,7 +85,7 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
     }
     // The gRPC client retries UNAVAILABLE with backoff (1 s hints), so callers that meet a
     // full queue still succeed.
-    let answers = runtime.block_on(hammer(&server, &images, 4, 2));
+    let answers = runtime.block_on(hammer(&server, &images, 4, 2, 8));
     assert_eq!(answers.len(), 8);
     assert_eq!(server.get("/readyz").0, 200);
 }
@@ -111,18 +111,19 @@ async fn sequential(server: &Server, images: &[Vec<u8>]) -> Vec<PoseEstimate> {
 }
 
 /// `clients` tasks, each with its own connection, each sending `requests` estimates (images in
-/// rotation). Returns (image index, estimate) for every request; any error fails the test.
+/// rotation), retrying UNAVAILABLE `retries` times. Returns (image index, estimate) for every
+/// request; any error fails the test. Below the queue depth (64 by default; 16 clients have at
+/// most 16 requests in flight) no retry is allowed, so a single UNAVAILABLE fails the test.
 async fn hammer(
     server: &Server,
     images: &Arc<Vec<Vec<u8>>>,
     clients: usize,
     requests: usize,
+    retries: u32,
 ) -> Vec<(usize, PoseEstimate)> {
     let mut tasks = Vec::new();
     for c in 0..clients {
-        // No retries: 16 clients with one request each in flight stay below the queue depth
-        // (64), so a single UNAVAILABLE fails the test instead of being retried away.
-        let options = ClientOptions { retries: 0, ..ClientOptions::new(server.grpc_endpoint()) };
+        let options = ClientOptions { retries, ..ClientOptions::new(server.grpc_endpoint()) };
         let images = images.clone();
         tasks.push(tokio::spawn(async move {
             let client = Client::connect_with(options).await.unwrap();

@@ -26,8 +26,6 @@
 
 mod gradient;
 mod optimise;
-pub mod reference;
-pub mod synthetic;
 
 use std::f64::consts::{PI, TAU};
 
@@ -162,6 +160,10 @@ impl<'a> FeatureMap<'a> {
     pub fn width(&self) -> usize {
         self.width
     }
+
+    pub fn data(&self) -> &'a [f32] {
+        self.data
+    }
 }
 
 /// A neural mesh as the solver sees it: geometry, vertex features `C` (R × D, row-major, unit
@@ -199,6 +201,14 @@ impl<'a> MeshModel<'a> {
 
     pub fn dim(&self) -> usize {
         self.dim
+    }
+
+    pub fn vertex_features(&self) -> &'a [f32] {
+        self.vertex_features
+    }
+
+    pub fn clutter(&self) -> &'a [f32] {
+        self.clutter
     }
 }
 
@@ -488,7 +498,7 @@ pub fn render_and_compare(
 }
 
 /// The same rotation and distance with azimuth in `[0, 2π)` and elevation, θ in `[−π, π)`.
-fn canonical(p: &Pose) -> Pose {
+pub fn canonical(p: &Pose) -> Pose {
     let wrap = |x: f64| (x + PI).rem_euclid(TAU) - PI;
     Pose::new(p.azimuth.rem_euclid(TAU), wrap(p.elevation), wrap(p.theta), p.distance)
 }

@@ -144,6 +144,9 @@ pub struct JobsConfig {
     pub enforce_gate: bool,
     /// How often the store is read for jobs and images other processes wrote.
     pub poll: Duration,
+    /// Threads of the jobs' own rayon pool (adaptation and gate solves run there, never on the
+    /// global pool that serving solves use).
+    pub threads: usize,
 }
 
 /// Whether an image (by its hex sha256) is held out for the gate: the engine's bucket rule.

@@ -11,8 +11,8 @@ use serde_json::json;
 use tch::Tensor;
 use udapose_engine::{
     EngineError,
-    adapt::{self, Event},
-    checkpoint::{self, Manifest},
+    adapt::{self, AdaptConfig, Event, RoundReport},
+    checkpoint::{self, Manifest, Model},
     gate,
     input::{self, Rgb8Image},
 };
@@ -27,107 +27,131 @@ impl Jobs {
     /// Adapt, save, validate, activate; every terminal event but CANCELLED and FAILED is
     /// written here.
     pub(super) fn execute(&self, spec: &JobSpec, cancel: &AtomicBool) -> Result<()> {
-        let id = spec.job_id.as_str();
-        let mut config = self.config.adapt.clone();
-        let o = &spec.overrides;
-        config.max_rounds = o.max_rounds.map_or(config.max_rounds, |r| r as usize);
-        config.lr = o.learning_rate.unwrap_or(config.lr);
-        config.seed = o.seed.unwrap_or(config.seed);
-        let max_rounds = config.max_rounds as u32;
-        self.append(id, JobState::Running, |e| {
+        let config = self.adapt_config(spec);
+        self.append(&spec.job_id, JobState::Running, |e| {
             e.message = format!("adapting {} on {} images", spec.source_version, spec.train.len());
-            e.max_rounds = max_rounds;
+            e.max_rounds = config.max_rounds as u32;
         })?;
         let source_dir = self.store.version_dir(&spec.category, &spec.source_version)?;
         let source = checkpoint::load(&source_dir, self.config.device)
             .with_context(|| format!("loading {}", source_dir.display()))?;
-        let crop = source.manifest.crop;
         let saved = match self.store.manifest(&spec.category, &spec.version) {
             Ok(_) => true,
             Err(StoreError::UnknownVersion { .. }) => false,
             Err(e) => return Err(e.into()),
         };
         if saved {
-            tracing::info!(job = %id, "version {} was saved before a restart; validating it", spec.version);
-        } else {
-            let train = self.images(&spec.category, &spec.train, crop)?;
-            let started = Instant::now();
-            // Set when the images do not look like the category (see GateConfig::min_target_fired).
-            let mut mismatch = None;
-            let min_fired = self.config.gate.min_target_fired;
-            let mut on_event = |event: Event| {
-                if cancel.load(Ordering::Acquire) {
-                    return ControlFlow::Break(());
-                }
-                if let Event::Round(r) = event
-                    && r.round == 1
-                {
-                    let seen = 100.0 * gate::target_fired(r);
-                    let (model, min) = (&spec.source_version, 100.0 * min_fired);
-                    tracing::info!(job = %id, "target check: {seen:.2}% of visible vertices fire to {model} (at least {min:.2}% needed)");
-                }
-                if let Event::Round(r) = event
-                    && let Some(seen) = self.config.gate.target_mismatch(r)
-                {
-                    mismatch = Some(seen);
-                    return ControlFlow::Break(());
-                }
-                if let Event::Round(r) = event {
-                    let per_round = started.elapsed().as_secs_f64() / r.round as f64;
-                    let result = self.append(id, JobState::Running, |e| {
-                        e.message = format!("round {} of at most {max_rounds}", r.round);
-                        e.round = r.round as u32;
-                        e.fired_ratio = r.fired_ratio;
-                        e.pose_change_median_deg = r.pose_change_median_deg;
-                        e.eta_seconds = per_round * (max_rounds as f64 - r.round as f64).max(0.0);
-                    });
-                    if let Err(e) = result {
-                        tracing::error!(job = %id, "{e:#}");
-                        return ControlFlow::Break(());
-                    }
-                }
-                ControlFlow::Continue(())
-            };
-            let adapted = adapt::adapt(&source, &train, &config, &mut on_event);
-            drop(train);
-            if let Some(fired) = mismatch {
-                self.append(id, JobState::Rejected, |e| {
-                    e.message = format!(
-                        "the target images do not look like {} to {}: {:.1}% of visible vertices fire \
-                         (at least {:.1}% needed); nothing was saved",
-                        spec.category,
-                        spec.source_version,
-                        100.0 * fired,
-                        100.0 * min_fired
-                    );
-                    e.fired_ratio = fired;
-                })?;
-                return Ok(());
-            }
-            let adapted = adapted?;
-            let manifest = Manifest {
-                version: spec.version.clone(),
-                training: json!({
-                    "kind": "3duda-online",
-                    "job_id": id,
-                    "source_version": spec.source_version,
-                    "source_training": source.manifest.training,
-                    "config": config,
-                    "images": spec.train.len(),
-                    "rounds": adapted.rounds,
-                    "converged": adapted.converged,
-                    "backbone_steps": adapted.backbone_steps,
-                }),
-                // f32: f16 would round the small updates of adaptation away (METHOD.md §7.6).
-                dtype: "f32".into(),
-                metrics: serde_json::Value::Null,
-                files: Default::default(),
-                ..source.manifest.clone()
-            };
-            self.store.put_version(&spec.category, &spec.version, |dir| {
-                checkpoint::save(dir, &manifest, &adapted.vs, &adapted.neural_mesh).map_err(|e| e.to_string())
-            })?;
+            tracing::info!(job = %spec.job_id, "version {} was saved before a restart; validating it", spec.version);
+        } else if !self.adapt_and_save(spec, &source, &config, cancel)? {
+            return Ok(());
         }
+        self.validate_and_activate(spec, &source, cancel)
+    }
+
+    /// The server's adaptation settings with the job's overrides.
+    fn adapt_config(&self, spec: &JobSpec) -> AdaptConfig {
+        let mut config = self.config.adapt.clone();
+        let o = &spec.overrides;
+        config.max_rounds = o.max_rounds.map_or(config.max_rounds, |r| r as usize);
+        config.lr = o.learning_rate.unwrap_or(config.lr);
+        config.seed = o.seed.unwrap_or(config.seed);
+        config
+    }
+
+    /// 3DUDA on the job's images, then the candidate saved as its version. `false` when the
+    /// target check rejected the images (recorded; nothing saved).
+    fn adapt_and_save(
+        &self,
+        spec: &JobSpec,
+        source: &Model,
+        config: &AdaptConfig,
+        cancel: &AtomicBool,
+    ) -> Result<bool> {
+        let id = spec.job_id.as_str();
+        let train = self.images(&spec.category, &spec.train, source.manifest.crop)?;
+        let started = Instant::now();
+        // Set when the images do not look like the category (see GateConfig::min_target_fired).
+        let mut mismatch = None;
+        let mut on_event = |event: Event| {
+            if cancel.load(Ordering::Acquire) {
+                return ControlFlow::Break(());
+            }
+            let Event::Round(r) = event else { return ControlFlow::Continue(()) };
+            if r.round == 1 {
+                let (seen, min) = (100.0 * gate::target_fired(r), 100.0 * self.config.gate.min_target_fired);
+                tracing::info!(job = %id, "target check: {seen:.2}% of visible vertices fire to {} (at least {min:.2}% needed)", spec.source_version);
+            }
+            if let Some(seen) = self.config.gate.target_mismatch(r) {
+                mismatch = Some(seen);
+                return ControlFlow::Break(());
+            }
+            self.report_round(id, r, started, config.max_rounds)
+        };
+        let adapted = adapt::adapt(source, &train, config, &mut on_event);
+        drop(train);
+        if let Some(fired) = mismatch {
+            self.append(id, JobState::Rejected, |e| {
+                e.message = format!(
+                    "the target images do not look like {} to {}: {:.1}% of visible vertices fire \
+                     (at least {:.1}% needed); nothing was saved",
+                    spec.category,
+                    spec.source_version,
+                    100.0 * fired,
+                    100.0 * self.config.gate.min_target_fired
+                );
+                e.fired_ratio = fired;
+            })?;
+            return Ok(false);
+        }
+        let adapted = adapted?;
+        let manifest = Manifest {
+            version: spec.version.clone(),
+            training: json!({
+                "kind": "3duda-online",
+                "job_id": id,
+                "source_version": spec.source_version,
+                "source_training": source.manifest.training,
+                "config": config,
+                "images": spec.train.len(),
+                "rounds": adapted.rounds,
+                "converged": adapted.converged,
+                "backbone_steps": adapted.backbone_steps,
+            }),
+            // f32: f16 would round the small updates of adaptation away (METHOD.md §7.6).
+            dtype: "f32".into(),
+            metrics: serde_json::Value::Null,
+            files: Default::default(),
+            ..source.manifest.clone()
+        };
+        self.store.put_version(&spec.category, &spec.version, |dir| {
+            checkpoint::save(dir, &manifest, &adapted.vs, &adapted.neural_mesh).map_err(|e| e.to_string())
+        })?;
+        Ok(true)
+    }
+
+    /// A round's progress as a RUNNING event (a failed write stops the job).
+    fn report_round(&self, id: &str, r: &RoundReport, started: Instant, max_rounds: usize) -> ControlFlow<()> {
+        let per_round = started.elapsed().as_secs_f64() / r.round as f64;
+        let result = self.append(id, JobState::Running, |e| {
+            e.message = format!("round {} of at most {max_rounds}", r.round);
+            e.round = r.round as u32;
+            e.fired_ratio = r.fired_ratio;
+            e.pose_change_median_deg = r.pose_change_median_deg;
+            e.eta_seconds = per_round * (max_rounds as f64 - r.round as f64).max(0.0);
+        });
+        match result {
+            Ok(_) => ControlFlow::Continue(()),
+            Err(e) => {
+                tracing::error!(job = %id, "{e:#}");
+                ControlFlow::Break(())
+            }
+        }
+    }
+
+    /// The gate on the held-out images, candidate against source; then the create-only
+    /// activation of the generation the job started from + 1.
+    fn validate_and_activate(&self, spec: &JobSpec, source: &Model, cancel: &AtomicBool) -> Result<()> {
+        let (id, crop) = (spec.job_id.as_str(), source.manifest.crop);
         self.append(id, JobState::Validating, |e| {
             e.message = format!("saved {}; validating on {} held-out images", spec.version, spec.held_out.len());
             e.version = spec.version.clone();
@@ -140,7 +164,7 @@ impl Jobs {
         let mut check = |_: usize, _: usize| {
             if cancel.load(Ordering::Acquire) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         };
-        let before = gate::measure(&source, &held_out, &self.config.gate, &mut check)?;
+        let before = gate::measure(source, &held_out, &self.config.gate, &mut check)?;
         let after = gate::measure(&candidate, &held_out, &self.config.gate, &mut check)?;
         let decision = gate::decide(&before, &after, &self.config.gate)?;
         if !decision.passed && self.config.enforce_gate {

@@ -176,7 +176,7 @@ impl Jobs {
         if cancel.load(Ordering::Acquire) || state.terminal() {
             return; // cancelled while queued (already recorded), or ended elsewhere
         }
-        let ended = match self.execute(&spec, &cancel) {
+        let ended = match self.pool.install(|| self.execute(&spec, &cancel)) {
             Ok(()) => return self.finish(&spec),
             Err(e) if is_cancelled(&e) => {
                 let why = self.lock().jobs.get(id).map(|m| m.cancel_reason.clone()).unwrap_or_default();

@@ -36,6 +36,7 @@ fn recorder(store: &Store, registry: &Arc<Registry>) -> Arc<Jobs> {
         runs_jobs: false,
         enforce_gate: true,
         poll: Duration::ZERO,
+        threads: 1,
     };
     Jobs::start(store.clone(), registry.clone(), Buffer::new(store.clone(), 500), config).unwrap()
 }

@@ -1,4 +1,4 @@
-//! `udapose-lab bench gate`: does the label-free validation gate (`udapose_engine::gate`,
+//! `udapose-bench gate`: does the label-free validation gate (`udapose_engine::gate`,
 //! ARCHITECTURE.md "Validation gate") say yes where adaptation helped and no where it hurt?
 //!
 //! Per domain, the held-out images are the domain's *adapt* split images whose file bytes'
@@ -13,6 +13,8 @@
 //! decisions (made on the held-out images) agree best with the sign of the accuracy change on
 //! the whole adapt split (ties: the smallest positive value). The test split only reports how
 //! that choice fares. Writes the JSON report and its Markdown twin.
+
+mod report;
 
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
@@ -29,7 +31,6 @@ use udapose_engine::gate::{self, Decision, GateConfig, GateStats, Measured};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
 use udapose_engine::{Pose, PoseMetrics, pose_error};
-use udapose_lab::atomic::write_atomic;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
 use udapose_lab::synth::all_domains;
@@ -172,7 +173,7 @@ pub fn run(args: &GateArgs) -> Result<()> {
         eprintln!("{domain}: {} images, {} ({:.0} s)", r.images.len(), d.reason(), t.elapsed().as_secs_f64());
         results.push(r);
     }
-    write_report(args, &config, &results, started.elapsed().as_secs_f64())
+    report::write_report(args, &config, &results, started.elapsed().as_secs_f64())
 }
 
 /// `--images`: the gate's decision on a folder of unlabelled images, printed as JSON.
@@ -329,247 +330,4 @@ fn test_accuracy(eval: &Path, domain: &str) -> Option<TestSplit> {
     let lost = s.iter().zip(&a).filter(|(s, a)| right(**s) && !right(**a)).count();
     let gained = s.iter().zip(&a).filter(|(s, a)| !right(**s) && right(**a)).count();
     Some(TestSplit { source, adapted, lost, gained })
-}
-
-/// One `margin_gain` of the sweep: its agreement with the sign of the adapt split's change and,
-/// for comparison, with the (noisier) held-out images' change, each as (agree, counted).
-struct SweepRow {
-    gain: f64,
-    adapt: (usize, usize),
-    held_out: (usize, usize),
-}
-
-/// The `margin_gain` of `gains` whose decisions agree best with the sign of the adapt split's
-/// accuracy change, ties to the smallest positive value (a candidate must *raise* its margin:
-/// with 0, a no-op adaptation that changed nothing would pass), else the smallest; with each
-/// value's agreement counts.
-fn choose_gain(results: &[DomainResult], base: &GateConfig, gains: &[f64]) -> Result<(f64, Vec<SweepRow>)> {
-    let mut sweep = Vec::with_capacity(gains.len());
-    for &gain in gains {
-        let config = GateConfig { margin_gain: gain, ..base.clone() };
-        let mut row = SweepRow { gain, adapt: (0, 0), held_out: (0, 0) };
-        for r in results {
-            let passed = r.decide(&config)?.passed;
-            let (s, a, _) = r.adapt_split;
-            let (hs, ha) = r.adapt_accuracy()?;
-            for (change, (agree, counted)) in [(a - s, &mut row.adapt), (ha - hs, &mut row.held_out)] {
-                if let Some(ok) = agrees(passed, change) {
-                    *counted += 1;
-                    *agree += usize::from(ok);
-                }
-            }
-        }
-        sweep.push(row);
-    }
-    let best = sweep.iter().map(|s| s.adapt.0).max().unwrap_or(0);
-    let tied: Vec<f64> = sweep.iter().filter(|s| s.adapt.0 == best).map(|s| s.gain).collect();
-    let smallest = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
-    let positive: Vec<f64> = tied.iter().copied().filter(|&g| g > 0.0).collect();
-    let chosen = if positive.is_empty() { smallest(&tied) } else { smallest(&positive) };
-    Ok((chosen, sweep))
-}
-
-fn fmt_agree(v: Option<bool>) -> &'static str {
-    match v {
-        Some(true) => "yes",
-        Some(false) => "**no**",
-        None => "n/a (no change)",
-    }
-}
-
-/// Whether the candidates were adapted on the held-out images too (by their manifests' image
-/// counts), as a sentence for the report.
-fn trained_on(results: &[DomainResult]) -> String {
-    let whole = results.iter().all(|r| r.trained_on == Some(r.adapt_split.2 as u64));
-    let without = results.iter().all(|r| r.trained_on == Some((r.adapt_split.2 - r.images.len()) as u64));
-    if whole && !without {
-        "The candidates were adapted on the whole adapt split, held-out images included (a service job never \
-         trains on the held-out bucket)."
-            .into()
-    } else if without && !whole {
-        "The candidates were adapted on the adapt split without the held-out bucket, as a service job is.".into()
-    } else {
-        let counts: Vec<String> = results
-            .iter()
-            .map(|r| format!("{} {}", r.domain, r.trained_on.map_or("?".into(), |n| n.to_string())))
-            .collect();
-        format!("Images each candidate was adapted on (its manifest): {}.", counts.join(", "))
-    }
-}
-
-fn write_report(args: &GateArgs, config: &GateConfig, results: &[DomainResult], seconds: f64) -> Result<()> {
-    let (chosen, sweep) = choose_gain(results, config, &args.gains)?;
-    let command = ["udapose-lab".to_string()].into_iter().chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
-    let commit = crate::synth_cmd::git_commit();
-    let bucket = if args.all_adapt { "every adapt-split image" } else { "the held-out adapt-split images" };
-    let trained = trained_on(results);
-    let mut md = format!(
-        "# Validation gate: decisions vs. the true accuracy change\n\n\
-         `{command}` (commit `{commit}`, {}, {:.0} s).\n\n\
-         Active model: `{}` (source). Candidate: each domain's 3DUDA-adapted model under `{}`. The gate measures both on \
-         {bucket} of the domain (sha256 of the file bytes in `gate::held_out`, the service's rule), without labels, \
-         and decides with `margin_gain = {}`, `flip_se = {}`, `entropy_drop = {}`, `entropy_floor = {}`. With the labels, \
-         the change of Acc@π/6 (adapted − source) on the same images (Δ held-out), on the whole adapt split \
-         (Δ adapt split: a larger sample than the held-out bucket) and on the domain's test split from the report's \
-         evaluations (Δ test). A decision *agrees* when it passes a model whose accuracy rose and rejects one whose \
-         accuracy fell. {trained}\n\n",
-        crate::eval_cmd::machine(),
-        seconds,
-        args.source.display(),
-        args.adapted.display(),
-        config.margin_gain,
-        config.flip_se,
-        config.entropy_drop,
-        config.entropy_floor,
-    );
-    if let Some(note) = &args.note {
-        md.push_str(&format!("Note: {note}\n\n"));
-    }
-    md.push_str(
-        "| domain | n | flip rate src → adapted (needs) | median margin src → adapted (needs) | azimuth entropy src → adapted (needs) | decision | Δ held-out | Δ adapt split | agrees (adapt) | Δ test (z) | agrees (test) |\n\
-         |---|---:|---|---|---|---|---:|---:|---|---:|---|\n",
-    );
-    let mut domains = serde_json::Map::new();
-    let (mut agree_test, mut counted_test, mut agree_adapt, mut counted_adapt, mut passed) = (0, 0, 0, 0, 0);
-    let (mut agree_significant, mut counted_significant) = (0, 0);
-    for r in results {
-        let d = r.decide(config)?;
-        let (s, a) = r.adapt_accuracy()?;
-        let held_change = a - s;
-        let (split_s, split_a, split_n) = r.adapt_split;
-        let adapt_change = split_a - split_s;
-        let test_change = r.test.map(|t| t.change());
-        let ok_adapt = agrees(d.passed, adapt_change);
-        let ok_test = test_change.and_then(|c| agrees(d.passed, c));
-        if let (Some(t), Some(ok)) = (r.test, ok_test)
-            && t.significant()
-        {
-            counted_significant += 1;
-            agree_significant += usize::from(ok);
-        }
-        for (ok, agree, counted) in
-            [(ok_adapt, &mut agree_adapt, &mut counted_adapt), (ok_test, &mut agree_test, &mut counted_test)]
-        {
-            if let Some(ok) = ok {
-                *counted += 1;
-                *agree += usize::from(ok);
-            }
-        }
-        passed += usize::from(d.passed);
-        let cell = |name: &str, digits: usize| {
-            let c = d.criteria.iter().find(|c| c.name == name).expect("criterion");
-            format!(
-                "{:.digits$} → {:.digits$} (≥ {:.digits$}){}",
-                c.active,
-                c.candidate,
-                c.threshold,
-                if c.passed { "" } else { " ✗" }
-            )
-        };
-        md.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {:+.3} | {:+.3} | {} | {} | {} |\n",
-            r.domain,
-            r.images.len(),
-            cell("flip_consistency", 3),
-            cell("score_margin", 4),
-            cell("pose_diversity", 3),
-            if d.passed { "PASS" } else { "REJECT" },
-            held_change,
-            adapt_change,
-            fmt_agree(ok_adapt),
-            r.test.map_or("n/a".into(), |t| format!("{:+.3} ({:+.1})", t.change(), t.z())),
-            if test_change.is_some() { fmt_agree(ok_test) } else { "n/a" },
-        ));
-        // Per image, in `images` order (columns keep the report small): each model's checks and
-        // its error against the label, enough to re-decide or re-score offline.
-        let round = |v: f64, digits: i32| (v * 10f64.powi(digits)).round() / 10f64.powi(digits);
-        let columns = |m: &[Measured]| {
-            json!({
-                "azimuth_deg": m.iter().map(|m| round(m.check.azimuth.to_degrees(), 4)).collect::<Vec<_>>(),
-                "score": m.iter().map(|m| round(m.check.score, 7)).collect::<Vec<_>>(),
-                "margin": m.iter().map(|m| round(m.check.margin, 7)).collect::<Vec<_>>(),
-                "flip_consistent": m.iter().map(|m| m.check.flip_consistent).collect::<Vec<_>>(),
-                "error_deg": m.iter().zip(&r.truth)
-                    .map(|(m, t)| round(pose_error(Some(angles(&m.pose)), angles(t)).to_degrees(), 4))
-                    .collect::<Vec<_>>(),
-            })
-        };
-        let per_image = json!({"image": r.images, "source": columns(&r.active), "adapted": columns(&r.candidate)});
-        domains.insert(
-            r.domain.clone(),
-            json!({
-                "images": r.images.len(),
-                "candidate_trained_on": r.trained_on,
-                "decision": d,
-                "reason": d.reason(),
-                "held_out_acc_pi_6": {"source": s, "adapted": a, "change": held_change},
-                "adapt_split_acc_pi_6": {"source": split_s, "adapted": split_a, "change": adapt_change, "images": split_n, "agrees": ok_adapt},
-                "test_acc_pi_6": r.test.map(|t| json!({
-                    "source": t.source, "adapted": t.adapted, "change": t.change(), "agrees": ok_test,
-                    "lost": t.lost, "gained": t.gained, "mcnemar_z": t.z(), "significant": t.significant(),
-                })),
-                "per_image": per_image,
-            }),
-        );
-    }
-    md.push_str(&format!(
-        "\n**Totals**: {passed} of {} candidates pass. Decisions agree with the sign of the test-split change in \
-         **{agree_test} of {counted_test}** domains; in **{agree_significant} of {counted_significant}** of those whose \
-         test change is beyond noise (McNemar |z| ≥ 1.96: z = (gained − lost)/√(gained + lost), images only one model \
-         gets within π/6); and with the sign of the adapt-split change in {agree_adapt} of {counted_adapt} (domains \
-         whose accuracy did not change are not counted).\n\n",
-        results.len()
-    ));
-    let lo = results.iter().map(|r| r.images.len()).min().unwrap_or(0);
-    let hi = results.iter().map(|r| r.images.len()).max().unwrap_or(0);
-    md.push_str(&format!(
-        "## Choosing `margin_gain` (adapt split only)\n\n\
-         For each value, how many domains' decisions agree with the sign of the adapt-split Δ (of those that \
-         changed). The best is {chosen} (ties to the smallest positive value: with 0, a no-op adaptation that \
-         changed nothing would pass); the decisions above use {}. For comparison, the \
-         agreement with the sign of Δ on the gate's images alone ({lo}–{hi} images per domain, where a change of \
-         one or two images decides the sign); it was not used to choose.\n\n\
-         | margin_gain | agree (adapt split) | agree (held-out only) |\n|---:|---:|---:|\n",
-        config.margin_gain
-    ));
-    for r in &sweep {
-        md.push_str(&format!(
-            "| {:.4} | {} / {} | {} / {} |\n",
-            r.gain, r.adapt.0, r.adapt.1, r.held_out.0, r.held_out.1
-        ));
-    }
-    let report = json!({
-        "command": command,
-        "commit": commit,
-        "machine": crate::eval_cmd::machine(),
-        "seconds": seconds,
-        "note": args.note,
-        "source": args.source.display().to_string(),
-        "adapted": args.adapted.display().to_string(),
-        "data": args.data.display().to_string(),
-        "images": if args.all_adapt { "adapt" } else { "held-out adapt" },
-        "config": config,
-        "totals": {
-            "domains": results.len(),
-            "passed": passed,
-            "agree_test": agree_test, "counted_test": counted_test,
-            "agree_adapt": agree_adapt, "counted_adapt": counted_adapt,
-            "agree_test_significant": agree_significant, "counted_test_significant": counted_significant,
-        },
-        "margin_gain_sweep": sweep.iter().map(|r| json!({
-            "margin_gain": r.gain,
-            "agree_adapt_split": r.adapt.0, "counted_adapt_split": r.adapt.1,
-            "agree_held_out": r.held_out.0, "counted_held_out": r.held_out.1,
-        })).collect::<Vec<_>>(),
-        "margin_gain_chosen": chosen,
-        "domains": domains,
-    });
-    write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
-    write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
-    eprintln!(
-        "{passed}/{} pass; agree with test Δ in {agree_test}/{counted_test} ({agree_significant}/{counted_significant} \
-         significant), adapt Δ in {agree_adapt}/{counted_adapt}; margin_gain chosen on adapt: {chosen}",
-        results.len()
-    );
-    Ok(())
 }

@@ -9,12 +9,12 @@
 //! the solver does keeps the test from being an inverse crime: boundary cells mix object and
 //! clutter, and the solver's pixel-centre samples never reproduce the image exactly.
 
-use crate::camera::{Camera, Pose, fit_distance};
-use crate::error::{EngineError, Result};
-use crate::mesh::{Cuboid, Mesh, TARGET_VERTICES};
-use crate::raster::{NO_FACE, Rasterizer};
+use udapose_engine::camera::{Camera, Pose, fit_distance};
+use udapose_engine::error::{EngineError, Result};
+use udapose_engine::mesh::{Cuboid, Mesh, TARGET_VERTICES};
+use udapose_engine::raster::{NO_FACE, Rasterizer};
 
-use super::{FeatureMap, MeshModel};
+use udapose_engine::solver::{FeatureMap, MeshModel};
 
 /// The SynCar-OOD source car cuboid (METHOD.md §3): 0.433 × 0.992 × 0.270.
 pub const CAR_DIMENSIONS: [f64; 3] = [0.433, 0.992, 0.270];

@@ -1,301 +1,23 @@
-//! 3DUDA (METHOD.md §7): source-free, image-only adaptation of a neural mesh model by
-//! selective vertex updates and backbone fine-tuning on pseudo-poses, alternated (EM).
-//!
-//! The source model is never modified: [`adapt`] works on copies and returns them. The same
-//! loop with ground-truth poses and all visible vertices is the supervised *oracle*
-//! ([`finetune`]), so the two share their budget by construction.
+//! One adaptation run: its state, the EM rounds, pseudo-poses, the selective vertex update and
+//! the backbone step.
 
-use std::ops::ControlFlow;
-use std::time::Instant;
-
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
-use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
-use tch::nn::OptimizerConfig;
-use tch::{Tensor, nn};
-
-use crate::backbone::{Backbone, preprocess};
-use crate::camera::{Camera, Pose};
-use crate::checkpoint::{Model, NeuralMesh};
-use crate::error::{EngineError, Result};
-use crate::estimator::{self, Features, PoseSolver, to_host};
-use crate::mesh::Mesh;
-use crate::metrics::rotation_error;
-use crate::raster::Rasterizer;
-use crate::solver::SolverConfig;
-use crate::train::{SourceTraining, TrainConfig, VisibleVertices, visible_vertices};
-
-/// Which per-vertex cosine a feature must exceed to *fire* (METHOD.md §7.3).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", content = "value", rename_all = "snake_case")]
-pub enum Threshold {
-    /// τ_r from the checkpoint: a quantile of r's source cosines at ground-truth poses.
-    Source,
-    /// One cosine for every vertex (the paper's 0.8).
-    Fixed(f64),
-}
-
-/// Which matches an image contributes.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", content = "omega", rename_all = "snake_case")]
-pub enum Selection {
-    /// 3DUDA: every hypothesis's fired vertices, kept when at least ψ of its visible vertices
-    /// fire.
-    PerVertex,
-    /// The ablation (the paper's §3.3): an image's pseudo-pose is used, with *all* its visible
-    /// vertices, only when at least Ω of them fire.
-    Global(f64),
-}
-
-/// Every knob of the adaptation. Defaults: METHOD.md §7, with the settings it leaves open
-/// measured on SynCar-OOD `adapt` splits (reports/adapt-defaults.md): the paper's fixed cosine
-/// 0.8 (τ_r fired for 70–90% of vertices on any image, so nothing was selected), lr 1e-5 (1e-4
-/// lost precision), α 0.9 per 32 images and the source clutter kept (α 0.5 and a moving clutter
-/// collapsed the vertex features on fog), 5 rounds (10 drifted further: 0.653 → 0.597
-/// Acc@π/6 on `combined`; the convergence test never fired before round 10), and the target
-/// images' BatchNorm statistics first (fog 0.157 → 0.900 with it; combined 0.653 → 0.683).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct AdaptConfig {
-    pub threshold: Threshold,
-    pub selection: Selection,
-    /// ψ: an image's (hypothesis's) matches count only if this share of its visible vertices fire.
-    pub min_fired_ratio: f64,
-    /// Images scoring below this quantile of the round are left out of the backbone update.
-    pub drop_quantile: f64,
-    /// EMA weight α of the old vertex feature: `C_r ← α C_r + (1 − α) mean(fired f)`.
-    pub alpha: f64,
-    /// Images per vertex update (METHOD: at least 32).
-    pub vertex_batch: usize,
-    /// Also move the clutter vector towards the target's clutter features (same α).
-    pub update_clutter: bool,
-    /// Fine-tune the backbone on the pseudo-poses (false: vertex updates only).
-    pub update_backbone: bool,
-    /// Before round 1, replace the backbone's BatchNorm statistics by the target images' own
-    /// (AdaBN; label-free). The fine-tuning itself keeps them frozen, as METHOD.md §7.6 says.
-    #[serde(default)]
-    pub target_batchnorm: bool,
-    /// Adam learning rate of the backbone step.
-    pub lr: f64,
-    /// Images per backbone step.
-    pub batch: usize,
-    /// Stop after this many rounds at the latest.
-    pub max_rounds: usize,
-    /// Converged when, for `patience` rounds in a row, the fired ratio gains less than this ...
-    pub fired_gain: f64,
-    /// ... and the median pseudo-pose change is below this many degrees.
-    pub pose_change_deg: f64,
-    pub patience: usize,
-    /// Re-estimate κ_r from the fired features (`κ̂ = R̄(D − R̄²)/(1 − R̄²)`) at the end.
-    pub reestimate_kappa: bool,
-    /// The contrastive loss of the backbone step (METHOD.md §5).
-    pub train: TrainConfig,
-    /// Render and compare for the pseudo-poses (k = 3 as everywhere).
-    pub solver: SolverConfig,
-    pub seed: u64,
-}
-
-impl Default for AdaptConfig {
-    fn default() -> Self {
-        AdaptConfig {
-            threshold: Threshold::Fixed(0.8),
-            selection: Selection::PerVertex,
-            min_fired_ratio: 0.05,
-            drop_quantile: 0.2,
-            alpha: 0.9,
-            vertex_batch: 32,
-            update_clutter: false,
-            update_backbone: true,
-            target_batchnorm: true,
-            lr: 1e-5,
-            batch: 16,
-            max_rounds: 5,
-            fired_gain: 0.01,
-            pose_change_deg: 2.0,
-            patience: 2,
-            reestimate_kappa: false,
-            train: TrainConfig::default(),
-            solver: SolverConfig::default(),
-            seed: 0,
-        }
-    }
-}
-
-impl AdaptConfig {
-    /// The global pseudo-label filter of the ablation, Ω = 0.5 (the paper's setting).
-    pub fn global_filter() -> Self {
-        AdaptConfig { selection: Selection::Global(0.5), ..AdaptConfig::default() }
-    }
-
-    pub fn validate(&self) -> Result<()> {
-        let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
-        let ok = unit(self.min_fired_ratio)
-            && unit(self.drop_quantile)
-            && unit(self.alpha)
-            && self.vertex_batch > 0
-            && self.batch > 0
-            && self.max_rounds > 0
-            && self.patience > 0
-            && self.lr.is_finite()
-            && self.lr > 0.0
-            && self.fired_gain.is_finite()
-            && self.pose_change_deg.is_finite()
-            && match self.threshold {
-                Threshold::Source => true,
-                Threshold::Fixed(t) => t.is_finite() && (-1.0..=1.0).contains(&t),
-            }
-            && match self.selection {
-                Selection::PerVertex => true,
-                Selection::Global(omega) => unit(omega),
-            };
-        if !ok {
-            return Err(EngineError::InvalidInput(format!("invalid adaptation settings {self:?}")));
-        }
-        self.solver.validate()
-    }
-}
-
-/// How many images [`RoundReport::source_fired_ratio`] looks at.
-pub const SOURCE_CHECK_IMAGES: usize = 64;
-
-/// What happens now, for progress bars.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Phase {
-    Features,
-    VertexUpdate,
-    PseudoPoses,
-    Backbone,
-}
-
-/// The statistics of one EM round.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct RoundReport {
-    pub round: usize,
-    /// Round 1 with target BatchNorm statistics: the mean fired ratio of up to
-    /// [`SOURCE_CHECK_IMAGES`] of the images to the unchanged source model, i.e. how much the
-    /// images look like the category before anything adapts (AdaBN makes almost anything fire).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub source_fired_ratio: Option<f64>,
-    /// Mean share of visible vertices that fire at each image's best pose, with the vertex
-    /// features the round started with (round 1: the source model's).
-    pub fired_ratio_before: f64,
-    /// The same after this round's vertex update, at the new pseudo-poses.
-    pub fired_ratio: f64,
-    /// Share of the mesh's vertices that received at least one fired feature.
-    pub vertices_updated: f64,
-    /// Images whose pseudo-pose passed the selection (ψ or Ω) at this round.
-    pub images_selected: usize,
-    /// Images used by the backbone step (selected and above the score quantile).
-    pub images_trained: usize,
-    /// Median / 90th percentile of the pseudo-pose change from the previous round (degrees).
-    pub pose_change_median_deg: Option<f64>,
-    pub pose_change_p90_deg: Option<f64>,
-    /// Mean render-and-compare score at the pseudo-poses.
-    pub mean_score: f64,
-    /// Mean contrastive loss of the backbone step (none in the last round).
-    pub backbone_loss: Option<f64>,
-    pub seconds: f64,
-}
-
-/// Progress of a run: phases within a round, and each finished round.
-#[derive(Clone, Debug)]
-pub enum Event<'a> {
-    Step { round: usize, phase: Phase, done: usize, total: usize },
-    Round(&'a RoundReport),
-}
-
-/// The adapted (or fine-tuned) model: a new backbone and neural mesh, and how it got there.
-pub struct Adapted {
-    pub vs: nn::VarStore,
-    pub backbone: Backbone,
-    pub neural_mesh: NeuralMesh,
-    pub rounds: Vec<RoundReport>,
-    /// Stopped by the convergence criterion (not by `max_rounds`).
-    pub converged: bool,
-    /// Backbone optimiser steps taken (the budget the oracle matches).
-    pub backbone_steps: usize,
-    /// Per image, the pseudo-pose of the last round and its fired-vertex ratio.
-    pub pseudo_poses: Vec<Option<Pose>>,
-    pub fired_ratios: Vec<f64>,
-}
-
-/// Adapts `source` to the domain of `images` (N×3×H×W RGB in [0, 1], the model's crop size),
-/// without labels. `progress` may stop the run (`ControlFlow::Break`), which returns
-/// [`EngineError::Cancelled`].
-pub fn adapt(
-    source: &Model,
-    images: &Tensor,
-    config: &AdaptConfig,
-    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
-) -> Result<Adapted> {
-    Run::new(source, images, config)?.em(progress)
-}
-
-/// The oracle: the same loop with the ground-truth `poses` as pseudo-poses, every visible vertex
-/// a positive and `C` trained by its momentum bank (METHOD.md §5), for exactly
-/// `backbone_steps` optimiser steps of `config.batch` images (the adaptation's budget).
-pub fn finetune(
-    source: &Model,
-    images: &Tensor,
-    poses: &[Pose],
-    backbone_steps: usize,
-    config: &AdaptConfig,
-    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
-) -> Result<Adapted> {
-    let mut run = Run::new(source, images, config)?;
-    run.target_batchnorm()?;
-    if poses.len() != run.n {
-        return Err(EngineError::InvalidInput(format!("{} poses for {} images", poses.len(), run.n)));
-    }
-    let targets: Vec<Option<VisibleVertices>> = poses
-        .iter()
-        .map(|p| visible_vertices(&mut run.raster, &run.mesh, &run.crop, config.solver.stride, p).map(Some))
-        .collect::<Result<_>>()?;
-    let mut training = run.training();
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-    let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&run.vs, config.lr).map_err(tch_err)?;
-    let (mut steps, mut round) = (0, 0);
-    while steps < backbone_steps {
-        round += 1;
-        let started = Instant::now();
-        let left = backbone_steps - steps;
-        let (loss, taken) =
-            run.backbone_pass(&mut training, &mut opt, &targets, true, left, &mut rng, round, progress)?;
-        steps += taken;
-        let report = RoundReport {
-            round,
-            backbone_loss: Some(loss),
-            images_trained: run.n,
-            seconds: started.elapsed().as_secs_f64(),
-            ..Default::default()
-        };
-        if progress(Event::Round(&report)).is_break() {
-            return Err(EngineError::Cancelled);
-        }
-        run.rounds.push(report);
-    }
-    run.c = to_host(&training.vertex_features)?;
-    run.clutter = to_host(&estimator::clutter_mean(&training.clutter))?;
-    run.steps = steps;
-    run.finish(false, vec![None; poses.len()], vec![0.0; poses.len()])
-}
+use super::*;
 
 /// One image's best pose and the matches of each hypothesis.
-struct Solved {
-    pose: Pose,
-    score: f64,
-    hypotheses: Vec<Matches>,
+pub(super) struct Solved {
+    pub(super) pose: Pose,
+    pub(super) score: f64,
+    pub(super) hypotheses: Vec<Matches>,
 }
 
 /// The visible vertices at one pose, their feature cells and whether each fires.
-struct Matches {
-    visible: VisibleVertices,
-    fired: Vec<bool>,
+pub(super) struct Matches {
+    pub(super) visible: VisibleVertices,
+    pub(super) fired: Vec<bool>,
 }
 
 impl Matches {
-    fn ratio(&self) -> f64 {
+    pub(super) fn ratio(&self) -> f64 {
         if self.fired.is_empty() {
             0.0
         } else {
@@ -304,29 +26,29 @@ impl Matches {
     }
 }
 
-struct Run<'a> {
-    config: &'a AdaptConfig,
-    images: &'a Tensor,
-    n: usize,
-    mesh: Mesh,
-    crop: Camera,
-    raster: Rasterizer,
-    vs: nn::VarStore,
-    backbone: Backbone,
-    source_mesh: &'a NeuralMesh,
-    dim: usize,
+pub(super) struct Run<'a> {
+    pub(super) config: &'a AdaptConfig,
+    pub(super) images: &'a Tensor,
+    pub(super) n: usize,
+    pub(super) mesh: Mesh,
+    pub(super) crop: Camera,
+    pub(super) raster: Rasterizer,
+    pub(super) vs: nn::VarStore,
+    pub(super) backbone: Backbone,
+    pub(super) source_mesh: &'a NeuralMesh,
+    pub(super) dim: usize,
     /// `C` (R×D) and the clutter vectors (N×D) on the host, row-major.
-    c: Vec<f32>,
-    clutter: Vec<f32>,
-    tau: Vec<f32>,
-    rounds: Vec<RoundReport>,
-    steps: usize,
+    pub(super) c: Vec<f32>,
+    pub(super) clutter: Vec<f32>,
+    pub(super) tau: Vec<f32>,
+    pub(super) rounds: Vec<RoundReport>,
+    pub(super) steps: usize,
     /// Per vertex, the sum and count of the fired features of the last vertex-update pass (κ̂).
-    resultant: (Vec<f32>, Vec<usize>),
+    pub(super) resultant: (Vec<f32>, Vec<usize>),
 }
 
 impl<'a> Run<'a> {
-    fn new(source: &'a Model, images: &'a Tensor, config: &'a AdaptConfig) -> Result<Self> {
+    pub(super) fn new(source: &'a Model, images: &'a Tensor, config: &'a AdaptConfig) -> Result<Self> {
         config.validate()?;
         let [h, w] = source.manifest.crop;
         let size = images.size();
@@ -363,7 +85,7 @@ impl<'a> Run<'a> {
     }
 
     /// The EM loop (METHOD.md §7.1–7).
-    fn em(mut self, progress: &mut dyn FnMut(Event) -> ControlFlow<()>) -> Result<Adapted> {
+    pub(super) fn em(mut self, progress: &mut dyn FnMut(Event) -> ControlFlow<()>) -> Result<Adapted> {
         let config = self.config;
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
         let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&self.vs, config.lr).map_err(tch_err)?;
@@ -433,7 +155,12 @@ impl<'a> Run<'a> {
         self.finish(converged, last.0, last.1)
     }
 
-    fn finish(self, converged: bool, pseudo_poses: Vec<Option<Pose>>, fired_ratios: Vec<f64>) -> Result<Adapted> {
+    pub(super) fn finish(
+        self,
+        converged: bool,
+        pseudo_poses: Vec<Option<Pose>>,
+        fired_ratios: Vec<f64>,
+    ) -> Result<Adapted> {
         let device = self.vs.device();
         let (r, d) = (self.mesh.vertices().len() as i64, self.dim as i64);
         let vertex_features = Tensor::from_slice(&self.c).reshape([r, d]).to_device(device);
@@ -466,7 +193,7 @@ impl<'a> Run<'a> {
 
     /// `κ̂_r = R̄(D − R̄²)/(1 − R̄²)` from the last pass's fired features; the source κ_r where a
     /// vertex fired fewer than 2 times.
-    fn kappa_estimate(&self) -> Vec<f32> {
+    pub(super) fn kappa_estimate(&self) -> Vec<f32> {
         let d = self.dim;
         let source = to_host(&self.source_mesh.kappa).unwrap_or_else(|_| vec![0.0; self.resultant.1.len()]);
         (0..self.resultant.1.len())
@@ -483,7 +210,7 @@ impl<'a> Run<'a> {
     }
 
     /// The current backbone's features of the first `n` images (eval mode), on the host.
-    fn features(
+    pub(super) fn features(
         &self,
         n: usize,
         round: usize,
@@ -501,7 +228,7 @@ impl<'a> Run<'a> {
 
     /// AdaBN (`config.target_batchnorm`): the target images' BatchNorm statistics replace the
     /// source's.
-    fn target_batchnorm(&self) -> Result<()> {
+    pub(super) fn target_batchnorm(&self) -> Result<()> {
         if self.config.target_batchnorm {
             self.backbone.reestimate_batchnorm(&self.vs, self.images, self.config.batch)?;
         }
@@ -509,7 +236,7 @@ impl<'a> Run<'a> {
     }
 
     /// Render and compare on every image with the current `C`, and each hypothesis's matches.
-    fn solve_all(
+    pub(super) fn solve_all(
         &self,
         features: &[Features],
         round: usize,
@@ -524,7 +251,7 @@ impl<'a> Run<'a> {
         Ok(out)
     }
 
-    fn solve_batch(&self, features: &[Features]) -> Result<Vec<Solved>> {
+    pub(super) fn solve_batch(&self, features: &[Features]) -> Result<Vec<Solved>> {
         let solver = PoseSolver::from_host(
             self.mesh.clone(),
             self.c.clone(),
@@ -553,7 +280,7 @@ impl<'a> Run<'a> {
             .collect()
     }
 
-    fn selected(&self, m: &Matches) -> bool {
+    pub(super) fn selected(&self, m: &Matches) -> bool {
         match self.config.selection {
             Selection::PerVertex => m.ratio() >= self.config.min_fired_ratio && m.ratio() > 0.0,
             Selection::Global(omega) => m.ratio() >= omega,
@@ -561,7 +288,7 @@ impl<'a> Run<'a> {
     }
 
     /// The matches an image's hypotheses contribute: `(vertex, cell)` pairs.
-    fn contributions<'m>(&self, solved: &'m Solved) -> impl Iterator<Item = (i64, i64)> + 'm {
+    pub(super) fn contributions<'m>(&self, solved: &'m Solved) -> impl Iterator<Item = (i64, i64)> + 'm {
         let global = matches!(self.config.selection, Selection::Global(_));
         let hypotheses = if global { &solved.hypotheses[..1] } else { &solved.hypotheses[..] };
         let keep: Vec<bool> = hypotheses.iter().map(|m| self.selected(m)).collect();
@@ -579,7 +306,7 @@ impl<'a> Run<'a> {
     /// Step 5: solve each batch with the current `C`, then move every vertex that received
     /// fired features towards their mean. Returns the mean fired ratio before the updates and
     /// the share of vertices updated at least once.
-    fn vertex_update(
+    pub(super) fn vertex_update(
         &mut self,
         features: &[Features],
         round: usize,
@@ -638,7 +365,7 @@ impl<'a> Run<'a> {
     /// Step 6's targets: per image, its pseudo-pose's positives (fired vertices; all visible
     /// ones under the global filter), or none when it failed the selection or scored below the
     /// round's `drop_quantile`.
-    fn backbone_targets(&self, solved: &[Solved]) -> Vec<Option<VisibleVertices>> {
+    pub(super) fn backbone_targets(&self, solved: &[Solved]) -> Vec<Option<VisibleVertices>> {
         let scores: Vec<f64> = solved.iter().map(|s| s.score).collect();
         let floor = quantile(&scores, self.config.drop_quantile);
         let global = matches!(self.config.selection, Selection::Global(_));
@@ -661,7 +388,7 @@ impl<'a> Run<'a> {
     }
 
     /// The contrastive loss of METHOD.md §5 around the current `C` and clutter.
-    fn training(&self) -> SourceTraining {
+    pub(super) fn training(&self) -> SourceTraining {
         let device = self.vs.device();
         let (r, d) = (self.mesh.vertices().len() as i64, self.dim as i64);
         let c = Tensor::from_slice(&self.c).reshape([r, d]).to_device(device);
@@ -672,7 +399,7 @@ impl<'a> Run<'a> {
     /// One pass over the images with targets, at most `max_steps` optimiser steps, BatchNorm
     /// statistics frozen. Returns the mean loss and the steps taken.
     #[allow(clippy::too_many_arguments)]
-    fn backbone_pass(
+    pub(super) fn backbone_pass(
         &mut self,
         training: &mut SourceTraining,
         opt: &mut nn::Optimizer,
@@ -705,88 +432,4 @@ impl<'a> Run<'a> {
         }
         Ok((sum / steps.max(1) as f64, steps))
     }
-}
-
-/// The share of an image's visible vertices (at `pose`) whose feature fires against `model`'s
-/// vertex features and thresholds: the diagnostic the paper plots by azimuth.
-pub fn fired_ratio(
-    neural_mesh: &NeuralMesh,
-    features: &Features,
-    crop: &Camera,
-    stride: usize,
-    pose: &Pose,
-    threshold: Threshold,
-) -> Result<f64> {
-    let mut raster = Rasterizer::new();
-    let visible = visible_vertices(&mut raster, &neural_mesh.mesh, crop, stride, pose)?;
-    let dim = neural_mesh.vertex_features.size()[1] as usize;
-    let c = to_host(&neural_mesh.vertex_features)?;
-    let tau = to_host(&neural_mesh.tau)?;
-    if visible.vertices.is_empty() {
-        return Ok(0.0);
-    }
-    let tau = match threshold {
-        Threshold::Source => tau,
-        Threshold::Fixed(t) => vec![t as f32; tau.len()],
-    };
-    let fired = fires(&visible, features, &c, &tau, dim).into_iter().filter(|&f| f).count();
-    Ok(fired as f64 / visible.vertices.len() as f64)
-}
-
-/// Which visible vertices fire: `f·C_r > τ_r` (METHOD.md §7.3).
-fn fires(visible: &VisibleVertices, f: &Features, c: &[f32], tau: &[f32], dim: usize) -> Vec<bool> {
-    visible
-        .vertices
-        .iter()
-        .zip(&visible.cells)
-        .map(|(&v, &cell)| cosine(f, cell as usize, &c[v as usize * dim..][..dim]) > tau[v as usize])
-        .collect()
-}
-
-fn tch_err(e: tch::TchError) -> EngineError {
-    EngineError::InvalidInput(format!("libtorch: {e}"))
-}
-
-fn step(
-    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
-    round: usize,
-    phase: Phase,
-    done: usize,
-    total: usize,
-) -> Result<()> {
-    match progress(Event::Step { round, phase, done, total }) {
-        ControlFlow::Continue(()) => Ok(()),
-        ControlFlow::Break(()) => Err(EngineError::Cancelled),
-    }
-}
-
-/// `f(cell) · c` for a channel-major feature map.
-fn cosine(f: &Features, cell: usize, c: &[f32]) -> f32 {
-    let hw = f.height * f.width;
-    c.iter().enumerate().map(|(k, ck)| f.data[k * hw + cell] * ck).sum()
-}
-
-fn add_feature(sum: &mut [f32], f: &Features, cell: usize) {
-    let hw = f.height * f.width;
-    sum.iter_mut().enumerate().for_each(|(k, s)| *s += f.data[k * hw + cell]);
-}
-
-fn normalise(row: &mut [f32]) {
-    let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
-    row.iter_mut().for_each(|x| *x /= norm);
-}
-
-fn pose_changes(a: &[Pose], b: &[Pose]) -> Vec<f64> {
-    a.iter().zip(b).map(|(p, q)| rotation_error(&p.rotation(), &q.rotation()).to_degrees()).collect()
-}
-
-fn mean(v: &[f64]) -> f64 {
-    if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 }
-}
-
-/// The `q` quantile (nearest rank) of `v`; 0 for an empty `v`.
-fn quantile(v: &[f64], q: f64) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    s.get(((s.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(0.0)
 }

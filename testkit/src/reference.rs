@@ -1,6 +1,6 @@
 //! The straightforward render and compare (METHOD.md §6, "NeMo's reference solver"), written with
 //! tch autograd ops: the baseline that udapose's fast form is timed against
-//! (`udapose-lab bench solver`).
+//! (`udapose-bench solver`).
 //!
 //! It shares udapose's camera, grid, fit distances and `k` (it starts from [`multi_pose_init`]'s
 //! poses, so both solvers refine the same hypotheses) and optimises `(a, e, θ, log d)` with
@@ -25,14 +25,14 @@
 use rayon::prelude::*;
 use tch::{Device, Kind, Tensor, nn, nn::OptimizerConfig};
 
-use super::{
+use udapose_engine::camera::{Camera, Pose};
+use udapose_engine::error::{EngineError, Result};
+use udapose_engine::mesh::Mesh;
+use udapose_engine::raster::{NO_FACE, Rasterizer};
+use udapose_engine::solver::{
     AdamConfig, Estimate, FeatureMap, Hypothesis, MeshModel, Problem, ScoredPose, SolverConfig, canonical,
     multi_pose_init,
 };
-use crate::camera::{Camera, Pose};
-use crate::error::{EngineError, Result};
-use crate::mesh::Mesh;
-use crate::raster::{NO_FACE, Rasterizer};
 
 /// How far (as a factor) the distance may move from its initial value (as udapose's refinement).
 const MAX_DISTANCE_FACTOR: f64 = 4.0;
@@ -43,7 +43,7 @@ pub struct ReferenceConfig {
     /// Adam's schedule: METHOD.md §6's 300 steps by default ([`AdamConfig::method`]).
     pub adam: AdamConfig,
     /// Refine the `k` hypotheses concurrently on rayon's pool (each with its own autograd graph
-    /// and optimiser), as udapose's [`super::solve`] does; by default one after the other, as
+    /// and optimiser), as udapose's [`udapose_engine::solver::solve`] does; by default one after the other, as
     /// NeMo does: measured faster on the 2-core machine, whose ops are too small to share.
     pub parallel_hypotheses: bool,
 }
@@ -81,30 +81,36 @@ impl<'a> ReferenceProblem<'a> {
     /// must be on `crop.at_stride(stride)`'s grid (checked as [`Problem::new`] does).
     pub fn new(model: &MeshModel<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
         let grid = crop.at_stride(stride)?;
-        if (features.height, features.width) != (grid.height, grid.width) {
+        if (features.height(), features.width()) != (grid.height, grid.width) {
             return Err(EngineError::InvalidInput(format!(
                 "features are {}×{} but a {}×{} crop at stride {stride} gives {}×{}",
-                features.height, features.width, crop.height, crop.width, grid.height, grid.width
+                features.height(),
+                features.width(),
+                crop.height,
+                crop.width,
+                grid.height,
+                grid.width
             )));
         }
-        if features.dim != model.dim {
+        if features.dim() != model.dim() {
             return Err(EngineError::InvalidInput(format!(
                 "feature dimension {} but the mesh model has {}",
-                features.dim, model.dim
+                features.dim(),
+                model.dim()
             )));
         }
-        let (d, r, p) = (model.dim as i64, model.mesh.vertices().len() as i64, (grid.width * grid.height) as i64);
-        let flat: Vec<f64> = model.mesh.vertices().iter().flatten().copied().collect();
+        let (d, r, p) = (model.dim() as i64, model.mesh().vertices().len() as i64, (grid.width * grid.height) as i64);
+        let flat: Vec<f64> = model.mesh().vertices().iter().flatten().copied().collect();
         let vertices = Tensor::from_slice(&flat).view([r, 3]);
-        let vertex_features = Tensor::from_slice(model.vertex_features).view([r, d]);
-        let f = Tensor::from_slice(features.data).view([d, p]);
-        let clutter_bank = Tensor::from_slice(model.clutter).view([-1, d]);
+        let vertex_features = Tensor::from_slice(model.vertex_features()).view([r, d]);
+        let f = Tensor::from_slice(features.data()).view([d, p]);
+        let clutter_bank = Tensor::from_slice(model.clutter()).view([-1, d]);
         let clutter = clutter_bank.matmul(&f).amax([0i64].as_slice(), false);
         let centres: Vec<f64> = (0..grid.height)
             .flat_map(|i| (0..grid.width).flat_map(move |j| [j as f64 + 0.5, i as f64 + 0.5]))
             .collect();
         Ok(ReferenceProblem {
-            mesh: model.mesh,
+            mesh: model.mesh(),
             grid,
             vertices,
             vertex_features,
@@ -269,9 +275,9 @@ fn rot_x(t: &Tensor) -> Tensor {
 }
 
 /// Refines each of `inits` (udapose's [`multi_pose_init`] output) with the reference solver and
-/// returns the lowest-loss hypothesis, as [`super::solve`] does.
+/// returns the lowest-loss hypothesis, as [`udapose_engine::solver::solve`] does.
 pub fn solve(problem: &ReferenceProblem, inits: &[ScoredPose], config: &ReferenceConfig) -> Result<Estimate> {
-    super::Optimizer::Adam(config.adam).validate()?;
+    udapose_engine::solver::Optimizer::Adam(config.adam).validate()?;
     let hypotheses: Vec<Hypothesis> = if config.parallel_hypotheses {
         let copies: Vec<(ReferenceProblem, ScoredPose)> = inits.iter().map(|i| (problem.shallow_clone(), *i)).collect();
         copies.into_par_iter().map(|(p, init)| p.refine(&init, &config.adam)).collect::<Result<_>>()?

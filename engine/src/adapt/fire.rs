@@ -1,0 +1,87 @@
+//! Which visible vertices fire (METHOD.md §7.3), and the small vector helpers of a run.
+
+use super::*;
+
+/// The share of an image's visible vertices (at `pose`) whose feature fires against `model`'s
+/// vertex features and thresholds: the diagnostic the paper plots by azimuth.
+pub fn fired_ratio(
+    neural_mesh: &NeuralMesh,
+    features: &Features,
+    crop: &Camera,
+    stride: usize,
+    pose: &Pose,
+    threshold: Threshold,
+) -> Result<f64> {
+    let mut raster = Rasterizer::new();
+    let visible = visible_vertices(&mut raster, &neural_mesh.mesh, crop, stride, pose)?;
+    let dim = neural_mesh.vertex_features.size()[1] as usize;
+    let c = to_host(&neural_mesh.vertex_features)?;
+    let tau = to_host(&neural_mesh.tau)?;
+    if visible.vertices.is_empty() {
+        return Ok(0.0);
+    }
+    let tau = match threshold {
+        Threshold::Source => tau,
+        Threshold::Fixed(t) => vec![t as f32; tau.len()],
+    };
+    let fired = fires(&visible, features, &c, &tau, dim).into_iter().filter(|&f| f).count();
+    Ok(fired as f64 / visible.vertices.len() as f64)
+}
+
+/// Which visible vertices fire: `f·C_r > τ_r` (METHOD.md §7.3).
+pub(super) fn fires(visible: &VisibleVertices, f: &Features, c: &[f32], tau: &[f32], dim: usize) -> Vec<bool> {
+    visible
+        .vertices
+        .iter()
+        .zip(&visible.cells)
+        .map(|(&v, &cell)| cosine(f, cell as usize, &c[v as usize * dim..][..dim]) > tau[v as usize])
+        .collect()
+}
+
+pub(super) fn tch_err(e: tch::TchError) -> EngineError {
+    EngineError::InvalidInput(format!("libtorch: {e}"))
+}
+
+pub(super) fn step(
+    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+    round: usize,
+    phase: Phase,
+    done: usize,
+    total: usize,
+) -> Result<()> {
+    match progress(Event::Step { round, phase, done, total }) {
+        ControlFlow::Continue(()) => Ok(()),
+        ControlFlow::Break(()) => Err(EngineError::Cancelled),
+    }
+}
+
+/// `f(cell) · c` for a channel-major feature map.
+pub(super) fn cosine(f: &Features, cell: usize, c: &[f32]) -> f32 {
+    let hw = f.height * f.width;
+    c.iter().enumerate().map(|(k, ck)| f.data[k * hw + cell] * ck).sum()
+}
+
+pub(super) fn add_feature(sum: &mut [f32], f: &Features, cell: usize) {
+    let hw = f.height * f.width;
+    sum.iter_mut().enumerate().for_each(|(k, s)| *s += f.data[k * hw + cell]);
+}
+
+pub(super) fn normalise(row: &mut [f32]) {
+    let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+    row.iter_mut().for_each(|x| *x /= norm);
+}
+
+pub(super) fn pose_changes(a: &[Pose], b: &[Pose]) -> Vec<f64> {
+    a.iter().zip(b).map(|(p, q)| rotation_error(&p.rotation(), &q.rotation()).to_degrees()).collect()
+}
+
+pub(super) fn mean(v: &[f64]) -> f64 {
+    if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 }
+}
+
+/// The `q` quantile (nearest rank) of `v`; 0 for an empty `v`.
+pub(super) fn quantile(v: &[f64], q: f64) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    s.get(((s.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(0.0)
+}
