@@ -273,3 +273,6 @@ fn seed_dirs(seeds: &Path) -> Result<Vec<(String, PathBuf)>> {
     out.sort();
     Ok(out)
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,83 @@
+//! The registry on an in-memory store: seeds imported and served, a new activation swapped in,
+//! a stale one refused, a rollback, and a category that cannot load saying why.
+
+use std::time::Instant;
+
+use tch::Device;
+
+use super::*;
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("udapose-registry-{name}-{}", std::process::id()));
+    let _ = fs::remove_dir_all(&dir);
+    fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn workers() -> WorkerConfig {
+    WorkerConfig { workers: 1, max_batch: 1, max_delay: Duration::ZERO, queue_depth: 4, device: Device::Cpu }
+}
+
+fn shipped_models() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models")
+}
+
+#[test]
+fn seeds_are_served_then_swapped_refused_when_stale_and_rolled_back() {
+    let dir = scratch("swap");
+    let store = Store::in_memory(&dir.join("cache")).unwrap();
+    let registry = Registry::start(store.clone(), &shipped_models(), &workers(), Arc::new(Metrics::new())).unwrap();
+    assert_eq!(registry.categories().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["car"]);
+    let car = registry.get("car").unwrap();
+    let seed = car.active().expect("the seed is active");
+    assert!(seed.version.starts_with("seed-"), "{}", seed.version);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !car.ready() {
+        assert!(Instant::now() < deadline, "the worker never loaded the seed: {:?}", car.error());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let ready = registry.readiness();
+    assert!(ready.ready && ready.reason == "1 of 1 models loaded", "{}", ready.reason);
+
+    // A second version (the seed's files under another id), activated by another process.
+    store
+        .put_version("car", "v2", |out| {
+            fs::create_dir_all(out).map_err(|e| e.to_string())?;
+            for entry in fs::read_dir(&seed.dir).map_err(|e| e.to_string())? {
+                let path = entry.map_err(|e| e.to_string())?.path();
+                fs::copy(&path, out.join(path.file_name().unwrap())).map_err(|e| e.to_string())?;
+            }
+            Ok(())
+        })
+        .unwrap();
+    store.activate("car", "v2", "test", "swap", Some(seed.generation), None).unwrap();
+    registry.refresh();
+    let v2 = car.active().unwrap();
+    assert_eq!((v2.version.as_str(), v2.generation), ("v2", seed.generation + 1));
+    // An activation from a stale generation loses (create-only log entries).
+    let stale = store.activate("car", &seed.version, "test", "stale", Some(seed.generation), None);
+    assert!(matches!(stale, Err(StoreError::Conflict { .. })), "{stale:?}");
+    assert!(!car.refresh(&store).unwrap(), "nothing changed");
+    // A rollback activates the previous version as a new generation.
+    store.rollback("car", "test", "back", None).unwrap();
+    registry.refresh();
+    let back = car.active().unwrap();
+    assert_eq!((back.version.as_str(), back.generation), (seed.version.as_str(), seed.generation + 2));
+    fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn a_category_that_cannot_load_is_not_ready_and_says_why() {
+    let dir = scratch("broken");
+    let seeds = dir.join("seeds");
+    fs::create_dir_all(seeds.join("bus")).unwrap();
+    fs::write(seeds.join("bus").join(MANIFEST), b"{ not json").unwrap();
+    let store = Store::in_memory(&dir.join("cache")).unwrap();
+    let registry = Registry::start(store, &seeds, &workers(), Arc::new(Metrics::new())).unwrap();
+    let bus = registry.get("bus").expect("the failed seed is still listed");
+    assert!(bus.active().is_none() && !bus.ready());
+    assert!(bus.error().is_some_and(|e| !e.is_empty()), "{:?}", bus.error());
+    let readiness = registry.readiness();
+    assert!(!readiness.ready && readiness.reason.contains("bus: "), "{}", readiness.reason);
+    fs::remove_dir_all(dir).unwrap();
+}
