@@ -14,15 +14,11 @@ use std::{
 use anyhow::{Context, Result, bail, ensure};
 use serde_json::{Value, json};
 
-/// The commit this binary is built from (`UDAPOSE_BUILD_COMMIT`, set by build.rs), for reports.
-pub(crate) fn git_commit() -> String {
-    env!("UDAPOSE_BUILD_COMMIT").to_string()
-}
+pub(crate) use udapose_lab::machine;
 
-/// CPU model and thread count, for reports.
-pub(crate) fn machine() -> String {
-    let cpu = udapose_engine::runtime::cpu_model();
-    format!("{cpu}, {} threads", rayon::current_num_threads())
+/// The commit the benches are built from (lab's build script records it), for reports.
+pub(crate) fn git_commit() -> String {
+    udapose_lab::BUILD_COMMIT.to_string()
 }
 
 /// The 1, 5 and 15 minute load averages (`/proc/loadavg`), for reports.

@@ -132,9 +132,7 @@ impl GateConfig {
         }
         self.solver.validate()
     }
-}
 
-impl GateConfig {
     /// The target check (see [`GateConfig::min_target_fired`]): on round 1's report, the share
     /// of visible vertices that fired to the unchanged model when it is below the minimum (the
     /// images do not look like the category), else `None`. Judged by the source model's eyes:

@@ -164,7 +164,4 @@ fn subdirs(dir: &Path) -> Vec<String> {
 }
 
 /// CPU model and thread count, for reports.
-pub fn machine() -> String {
-    let cpu = udapose_engine::runtime::cpu_model();
-    format!("{cpu}, {} threads", rayon::current_num_threads())
-}
+pub use udapose_lab::machine;

@@ -11,3 +11,12 @@ pub mod npz;
 pub mod preview;
 pub mod render;
 pub mod synth;
+
+/// The commit this build comes from (set by build.rs), for reports and manifests.
+pub const BUILD_COMMIT: &str = env!("UDAPOSE_BUILD_COMMIT");
+
+/// CPU model and thread count, for reports.
+pub fn machine() -> String {
+    let cpu = udapose_engine::runtime::cpu_model();
+    format!("{cpu}, {} threads", rayon::current_num_threads())
+}

@@ -183,7 +183,7 @@ fn package_version(package: &str) -> String {
 /// The commit the binary was built from (embedded by build.rs), not that of the directory the
 /// command runs in.
 pub fn git_commit() -> String {
-    env!("UDAPOSE_BUILD_COMMIT").to_string()
+    udapose_lab::BUILD_COMMIT.to_string()
 }
 
 fn command_output(program: &str, args: &[&str]) -> Option<String> {

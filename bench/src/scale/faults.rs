@@ -42,6 +42,24 @@ impl Ctx<'_> {
     fn image(&self) -> &[u8] {
         &self.images[0]
     }
+
+    /// The fleet's CPU snapshot, then the targets uploaded to every replica and a job asked on
+    /// serve-0: the snapshot, the uploads and the job's id.
+    fn start_job(
+        &self,
+        replicas: &[Node],
+        worker: &Node,
+        job_body: &Value,
+        targets: &[Vec<u8>],
+    ) -> Result<(Snapshot, BTreeMap<String, usize>, String)> {
+        let from = self.snapshot(replicas, worker);
+        let all: Vec<&Node> = replicas.iter().collect();
+        let uploaded = upload(&all, targets)?;
+        let job = replicas[0].server.post_json("/v1/adapt/car/jobs", job_body)?;
+        let id = job["job_id"].as_str().context("no job_id")?.to_owned();
+        eprintln!("  uploaded {uploaded:?}; job {id} asked on serve-0");
+        Ok((from, uploaded, id))
+    }
 }
 
 /// A fault's window: snapshots of every process at its start and end.
@@ -124,12 +142,8 @@ impl JobSwap {
         targets: &[Vec<u8>],
     ) -> Result<JobSwap> {
         eprintln!("fault: adaptation job and the swap after its activation ({} clients)", ctx.args.fault_clients);
-        let from = ctx.snapshot(replicas, worker);
+        let (from, uploaded, id) = ctx.start_job(replicas, worker, job_body, targets)?;
         let all: Vec<&Node> = replicas.iter().collect();
-        let uploaded = upload(&all, targets)?;
-        let job = replicas[0].server.post_json("/v1/adapt/car/jobs", job_body)?;
-        let id = job["job_id"].as_str().context("no job_id")?.to_owned();
-        eprintln!("  uploaded {uploaded:?}; job {id} asked on serve-0");
         let (done, swap) = activated_swap(worker, &id, &all, ctx.image(), ctx.timeout)?;
         let to = ctx.snapshot(replicas, worker);
         eprintln!(
@@ -294,12 +308,8 @@ impl WorkerKill {
         targets: &[Vec<u8>],
     ) -> Result<WorkerKill> {
         eprintln!("fault: kill -9 of the worker mid-job, then a new worker");
-        let from = ctx.snapshot(replicas, worker);
+        let (from, uploaded, id) = ctx.start_job(replicas, worker, job_body, targets)?;
         let all: Vec<&Node> = replicas.iter().collect();
-        let uploaded = upload(&all, targets)?;
-        let job = replicas[0].server.post_json("/v1/adapt/car/jobs", job_body)?;
-        let id = job["job_id"].as_str().context("no job_id")?.to_owned();
-        eprintln!("  uploaded {uploaded:?}; job {id} asked on serve-0");
         let (before_kill, log_worker_killed) = kill_mid_job(ctx, worker, &id)?;
         let state_at_kill = job_state(&before_kill).to_owned();
         let new_worker = ctx.fleet.start("worker-restarted", "adapt", worker_addrs)?;
