@@ -149,13 +149,14 @@ pub fn crop_box(width: usize, height: usize, bbox: Option<CropBox>, crop: [usize
             }
             if b.x0 < 0.0 || b.y0 < 0.0 || b.x1 > w || b.y1 > h {
                 return Err(EngineError::InvalidInput(format!(
-                    "box ({}, {}, {}, {}) leaves the {width}x{height} image",
+                    // Debug: 1e300 prints as such, not as 301 digits.
+                    "box ({:?}, {:?}, {:?}, {:?}) leaves the {width}x{height} image",
                     b.x0, b.y0, b.x1, b.y1
                 )));
             }
             if b.width() < MIN_BOX_SIDE || b.height() < MIN_BOX_SIDE {
                 return Err(EngineError::InvalidInput(format!(
-                    "box ({}, {}, {}, {}) is smaller than {MIN_BOX_SIDE} px on a side",
+                    "box ({:?}, {:?}, {:?}, {:?}) is smaller than {MIN_BOX_SIDE} px on a side",
                     b.x0, b.y0, b.x1, b.y1
                 )));
             }

@@ -9,7 +9,7 @@ use std::ops::ControlFlow;
 
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::Pose;
-use udapose_engine::adapt::{self, AdaptConfig, Event, Phase, Selection, Threshold};
+use udapose_engine::adapt::{self, AdaptConfig, Event, Phase, Positives, Selection, Threshold};
 use udapose_engine::checkpoint;
 use udapose_engine::error::EngineError;
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
@@ -112,6 +112,23 @@ fn nothing_fires_above_a_cosine_of_one_so_nothing_changes() {
     assert!(same(&weights_before, &weights_after), "a weight changed although nothing fired");
     assert!(!same(&stats_before, &stats_after), "the BatchNorm statistics were not re-estimated");
     assert!(adapted.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features));
+}
+
+#[test]
+fn the_backbone_trains_the_positives_it_is_told_to() {
+    let source = random_model("positives");
+    // τ = 0 on a random model: about half of the visible vertices fire.
+    let run = |positives| {
+        let config = AdaptConfig { positives, max_rounds: 1, min_fired_ratio: 0.0, drop_quantile: 0.0, ..config(0.0) };
+        adapt::adapt(&source, &images(4), &config, &mut |_| ControlFlow::Continue(())).unwrap().rounds[0].clone()
+    };
+    let (visible, fired, object) = (run(Positives::Visible), run(Positives::Fired), run(Positives::Object));
+    assert_eq!(visible.images_trained, 4);
+    assert_eq!(visible.positive_share, 1.0, "eq. 8 trains every visible vertex");
+    // The same images, the same pseudo-poses: the fired positives are exactly the fired share.
+    assert!((fired.positive_share - fired.fired_ratio).abs() < 1e-9, "{fired:?}");
+    assert!(fired.positive_share > 0.1 && fired.positive_share < 0.9, "{fired:?}");
+    assert!(object.positive_share < 1.0, "{object:?}");
 }
 
 #[test]

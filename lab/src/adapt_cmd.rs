@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{self, AdaptConfig, Adapted, Event, Selection, Threshold};
+use udapose_engine::adapt::{self, AdaptConfig, Adapted, Event, Positives, Selection, Threshold, VertexMatches};
 use udapose_engine::checkpoint::{self, Manifest, Model};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_lab::datasets::syncar::SyncarSplit;
@@ -56,9 +56,13 @@ pub struct Knobs {
     /// images' own first: AdaBN).
     #[arg(long)]
     no_target_bn: bool,
-    /// Re-estimate κ_r from the fired features.
-    #[arg(long)]
-    reestimate_kappa: bool,
+    /// The backbone step's positives: every visible vertex (the paper's eq. 8), only the fired
+    /// ones, or the visible ones whose cell matches the object better than the clutter.
+    #[arg(long, value_enum)]
+    positives: Option<PositivesArg>,
+    /// Whose fired matches move the vertex features: all k hypotheses' or the best one's.
+    #[arg(long, value_enum)]
+    vertex_matches: Option<VertexMatchesArg>,
     #[arg(long)]
     seed: Option<u64>,
 }
@@ -75,7 +79,8 @@ impl Knobs {
         c.update_backbone = !self.no_backbone;
         c.update_clutter = self.update_clutter;
         c.drop_quantile = self.drop_quantile.unwrap_or(c.drop_quantile);
-        c.reestimate_kappa = self.reestimate_kappa;
+        c.positives = self.positives.map_or(c.positives, Positives::from);
+        c.vertex_matches = self.vertex_matches.map_or(c.vertex_matches, VertexMatches::from);
         c.target_batchnorm &= !self.no_target_bn;
         if let Some(t) = self.fixed_threshold {
             c.threshold = Threshold::Fixed(t);
@@ -87,6 +92,39 @@ impl Knobs {
             c.selection = Selection::Global(omega);
         }
         c
+    }
+}
+
+/// [`Positives`] on the command line (the engine knows no clap).
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum PositivesArg {
+    Visible,
+    Fired,
+    Object,
+}
+
+impl From<PositivesArg> for Positives {
+    fn from(p: PositivesArg) -> Self {
+        match p {
+            PositivesArg::Visible => Positives::Visible,
+            PositivesArg::Fired => Positives::Fired,
+            PositivesArg::Object => Positives::Object,
+        }
+    }
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+enum VertexMatchesArg {
+    All,
+    Best,
+}
+
+impl From<VertexMatchesArg> for VertexMatches {
+    fn from(m: VertexMatchesArg) -> Self {
+        match m {
+            VertexMatchesArg::All => VertexMatches::All,
+            VertexMatchesArg::Best => VertexMatches::Best,
+        }
     }
 }
 

@@ -246,8 +246,9 @@ impl Report<'_> {
              3DUDA here starts by replacing the backbone's BatchNorm statistics by the target images' own \
              (AdaBN, label-free; `--no-target-bn` turns it off); *BN only* is that step alone, so what the EM's \
              vertex and backbone updates add is adapted − BN only. The oracle gets the same step.\n\n\
-             | domain | source | BN only | adapted | oracle | global filter | gap closed | MedErr src → adapted (°) | adapt s |\n\
-             |---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+             *EM gain* = adapted − BN only with its paired bootstrap interval.\n\n\
+             | domain | source | BN only | adapted | oracle | global filter | gap closed | EM gain | MedErr src → adapted (°) | adapt s |\n\
+             |---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
             self.args.profile,
             self.work.display(),
             crate::synth_cmd::git_commit(),
@@ -267,10 +268,13 @@ impl Report<'_> {
                 (Some(s), Some(a), Some(o)) => gap_closed(s, a, o),
                 _ => (None, None),
             };
+            // What the EM adds to AdaBN, and what the whole adaptation adds to the source.
+            let (em, adapt) = (gain(&b, &a), gain(&s, &a));
             let seconds = |what: &str| self.timings.get(&format!("{what} {domain}")).copied();
             let mut entry = json!({
                 "source": metrics(&s), "batchnorm_only": metrics(&b), "adapted": metrics(&a), "oracle": metrics(&o), "global_filter": metrics(&g),
                 "gap_closed": gap.0, "gap_closed_ci": gap.1,
+                "em_gain": em.0, "em_gain_ci": em.1, "adapt_gain": adapt.0, "adapt_gain_ci": adapt.1,
                 "adapt_seconds": seconds("adapt"), "oracle_seconds": seconds("oracle"), "global_seconds": seconds("global"),
             });
             let fired = |e: &Option<Value>| e.as_ref().and_then(|e| mean_of(&e["fired_ratios"]));
@@ -286,9 +290,13 @@ impl Report<'_> {
                 _ if s.is_some() && o.is_some() => "n/a".into(),
                 _ => "—".into(),
             };
+            let em_cell = match em {
+                (Some(x), Some([lo, hi])) => format!("{x:+.3} [{lo:+.3}, {hi:+.3}]"),
+                _ => "—".into(),
+            };
             let med = |e: &Option<Value>| e.as_ref().map_or("—".into(), |e| format!("{:.1}", f(&e["med_err_deg"])));
             md.push_str(&format!(
-                "| {domain} | {} | {} | {} | {} | {} | {gap_cell} | {} → {} | {} |\n",
+                "| {domain} | {} | {} | {} | {} | {} | {gap_cell} | {em_cell} | {} → {} | {} |\n",
                 cell(&s),
                 cell(&b),
                 cell(&a),
@@ -311,6 +319,7 @@ impl Report<'_> {
             "commit": crate::synth_cmd::git_commit(),
             "machine": crate::eval_cmd::machine(),
             "source_model": self.source.display().to_string(),
+            "model": model_version(&self.source),
             "data": self.data.display().to_string(),
             "domains": out,
             "stage_seconds": self.timings,
@@ -398,29 +407,54 @@ fn metrics(e: &Option<Value>) -> Value {
     Value::Object(keys.iter().map(|k| (k.to_string(), e[*k].clone())).collect())
 }
 
+/// The source model's version, from its manifest.
+fn model_version(dir: &Path) -> Value {
+    let manifest = std::fs::read_to_string(dir.join("manifest.json")).ok();
+    manifest.and_then(|m| serde_json::from_str::<Value>(&m).ok()).map_or(Value::Null, |m| m["version"].clone())
+}
+
+/// Per test image, whether its error is under π/6 (Acc@π/6's hits).
+fn hits(e: &Value) -> Vec<bool> {
+    e["errors_deg"]
+        .as_array()
+        .map(|x| x.iter().map(|v| v.as_f64().unwrap_or(180.0) < 30.0).collect())
+        .unwrap_or_default()
+}
+
+fn share(h: &[bool], idx: &[usize]) -> f64 {
+    idx.iter().filter(|&&i| h[i]).count() as f64 / idx.len() as f64
+}
+
 /// Gap closed on Acc@π/6 and its paired bootstrap interval (the same resampled images for the
 /// three models; 1000 resamples, seed 0). None where oracle − source < [`MIN_GAP`].
 fn gap_closed(s: &Value, a: &Value, o: &Value) -> (Option<f64>, Option<[f64; 2]>) {
-    let hits = |e: &Value| -> Vec<bool> {
-        e["errors_deg"]
-            .as_array()
-            .map(|x| x.iter().map(|v| v.as_f64().unwrap_or(180.0) < 30.0).collect())
-            .unwrap_or_default()
-    };
     let (hs, ha, ho) = (hits(s), hits(a), hits(o));
     let n = hs.len();
     if n == 0 || ha.len() != n || ho.len() != n {
         return (None, None);
     }
-    let acc = |h: &[bool], idx: &[usize]| idx.iter().filter(|&&i| h[i]).count() as f64 / idx.len() as f64;
     let all: Vec<usize> = (0..n).collect();
-    let (s0, a0, o0) = (acc(&hs, &all), acc(&ha, &all), acc(&ho, &all));
+    let (s0, a0, o0) = (share(&hs, &all), share(&ha, &all), share(&ho, &all));
     if o0 - s0 < MIN_GAP {
         return (None, None);
     }
     let ci = paired_bootstrap(n, 1000, 0, |idx| {
-        let (s, a, o) = (acc(&hs, idx), acc(&ha, idx), acc(&ho, idx));
+        let (s, a, o) = (share(&hs, idx), share(&ha, idx), share(&ho, idx));
         (o - s > 0.0).then(|| (a - s) / (o - s))
     });
     (Some((a0 - s0) / (o0 - s0)), ci)
+}
+
+/// `to − from` on Acc@π/6 with its paired bootstrap interval (same images; 1000 resamples,
+/// seed 0): e.g. the EM gain, adapted − BN only.
+fn gain(from: &Option<Value>, to: &Option<Value>) -> (Option<f64>, Option<[f64; 2]>) {
+    let (Some(from), Some(to)) = (from, to) else { return (None, None) };
+    let (hf, ht) = (hits(from), hits(to));
+    let n = hf.len();
+    if n == 0 || ht.len() != n {
+        return (None, None);
+    }
+    let all: Vec<usize> = (0..n).collect();
+    let ci = paired_bootstrap(n, 1000, 0, |idx| Some(share(&ht, idx) - share(&hf, idx)));
+    (Some(share(&ht, &all) - share(&hf, &all)), ci)
 }

@@ -38,6 +38,20 @@ pub(super) fn fires(visible: &VisibleVertices, f: &Features, c: &[f32], tau: &[f
         .collect()
 }
 
+/// Which visible vertices' cells the model assigns to the object: the feature matches its vertex
+/// better than every clutter vector (NeMo's occlusion inference; [`Positives::Object`]).
+pub(super) fn on_object(visible: &VisibleVertices, f: &Features, c: &[f32], clutter: &[f32], dim: usize) -> Vec<bool> {
+    visible
+        .vertices
+        .iter()
+        .zip(&visible.cells)
+        .map(|(&v, &cell)| {
+            let object = cosine(f, cell as usize, &c[v as usize * dim..][..dim]);
+            clutter.chunks(dim).all(|b| object > cosine(f, cell as usize, b))
+        })
+        .collect()
+}
+
 pub(super) fn tch_err(e: tch::TchError) -> EngineError {
     EngineError::InvalidInput(format!("libtorch: {e}"))
 }

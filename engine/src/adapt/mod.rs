@@ -55,6 +55,32 @@ pub enum Selection {
     Global(f64),
 }
 
+/// Which visible vertices of a selected pseudo-pose the backbone step trains as positives
+/// (METHOD.md §7.6). The global filter always trains all of them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Positives {
+    /// R_v, every visible vertex: the paper's eq. 8.
+    #[default]
+    Visible,
+    /// Only the vertices that fire.
+    Fired,
+    /// The visible vertices whose feature matches their vertex better than any clutter vector
+    /// (NeMo's label-free occlusion inference: the cell is assigned to the object).
+    Object,
+}
+
+/// Whose fired matches move the vertex features (METHOD.md §7.5).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VertexMatches {
+    /// The fired matches of all k hypotheses (local parts match even at a wrong global pose).
+    #[default]
+    All,
+    /// Only the best hypothesis's.
+    Best,
+}
+
 /// Every knob of the adaptation. Defaults: METHOD.md §7, with the settings it leaves open
 /// measured on SynCar-OOD `adapt` splits (reports/adapt-defaults.md): the paper's fixed cosine
 /// 0.8 (τ_r fired for 70–90% of vertices on any image, so nothing was selected), lr 1e-5 (1e-4
@@ -70,14 +96,23 @@ pub struct AdaptConfig {
     pub min_fired_ratio: f64,
     /// Images scoring below this quantile of the round are left out of the backbone update.
     pub drop_quantile: f64,
-    /// EMA weight α of the old vertex feature: `C_r ← α C_r + (1 − α) mean(fired f)`.
+    /// EMA weight α of the old vertex feature per round: each of a round's B batches applies
+    /// `C_r ← a C_r + (1 − a) mean(fired f)` with `a = α^(1/B)`, so that a round keeps α of the
+    /// old feature however many batches it has (per batch, α 0.9 compounded over 50 batches
+    /// replaced it).
     pub alpha: f64,
+    /// Whose fired matches the vertex update takes.
+    #[serde(default)]
+    pub vertex_matches: VertexMatches,
     /// Images per vertex update (METHOD: at least 32).
     pub vertex_batch: usize,
     /// Also move the clutter vector towards the target's clutter features (same α).
     pub update_clutter: bool,
     /// Fine-tune the backbone on the pseudo-poses (false: vertex updates only).
     pub update_backbone: bool,
+    /// The backbone step's positives.
+    #[serde(default)]
+    pub positives: Positives,
     /// Before round 1, replace the backbone's BatchNorm statistics by the target images' own
     /// (AdaBN; label-free). The fine-tuning itself keeps them frozen, as METHOD.md §7.6 says.
     #[serde(default)]
@@ -93,8 +128,6 @@ pub struct AdaptConfig {
     /// ... and the median pseudo-pose change is below this many degrees.
     pub pose_change_deg: f64,
     pub patience: usize,
-    /// Re-estimate κ_r from the fired features (`κ̂ = R̄(D − R̄²)/(1 − R̄²)`) at the end.
-    pub reestimate_kappa: bool,
     /// The contrastive loss of the backbone step (METHOD.md §5).
     pub train: TrainConfig,
     /// Render and compare for the pseudo-poses (k = 3 as everywhere).
@@ -110,9 +143,11 @@ impl Default for AdaptConfig {
             min_fired_ratio: 0.05,
             drop_quantile: 0.2,
             alpha: 0.9,
+            vertex_matches: VertexMatches::All,
             vertex_batch: 32,
             update_clutter: false,
             update_backbone: true,
+            positives: Positives::Visible,
             target_batchnorm: true,
             lr: 1e-5,
             batch: 16,
@@ -120,7 +155,6 @@ impl Default for AdaptConfig {
             fired_gain: 0.01,
             pose_change_deg: 2.0,
             patience: 2,
-            reestimate_kappa: false,
             train: TrainConfig::default(),
             solver: SolverConfig::default(),
             seed: 0,
@@ -195,6 +229,9 @@ pub struct RoundReport {
     pub images_selected: usize,
     /// Images used by the backbone step (selected and above the score quantile).
     pub images_trained: usize,
+    /// Mean share of a trained image's visible vertices that are its positives ([`Positives`]).
+    #[serde(default)]
+    pub positive_share: f64,
     /// Median / 90th percentile of the pseudo-pose change from the previous round (degrees).
     pub pose_change_median_deg: Option<f64>,
     pub pose_change_p90_deg: Option<f64>,

@@ -10,10 +10,12 @@ pub(super) struct Solved {
     pub(super) hypotheses: Vec<Matches>,
 }
 
-/// The visible vertices at one pose, their feature cells and whether each fires.
+/// The visible vertices at one pose, their feature cells, whether each fires and whether its
+/// cell is assigned to the object.
 pub(super) struct Matches {
     pub(super) visible: VisibleVertices,
     pub(super) fired: Vec<bool>,
+    pub(super) object: Vec<bool>,
 }
 
 impl Matches {
@@ -43,8 +45,6 @@ pub(super) struct Run<'a> {
     pub(super) tau: Vec<f32>,
     pub(super) rounds: Vec<RoundReport>,
     pub(super) steps: usize,
-    /// Per vertex, the sum and count of the fired features of the last vertex-update pass (κ̂).
-    pub(super) resultant: (Vec<f32>, Vec<usize>),
 }
 
 impl<'a> Run<'a> {
@@ -80,7 +80,6 @@ impl<'a> Run<'a> {
             tau,
             rounds: Vec::new(),
             steps: 0,
-            resultant: (Vec::new(), Vec::new()),
         })
     }
 
@@ -117,6 +116,7 @@ impl<'a> Run<'a> {
                 vertices_updated: updated,
                 images_selected: solved.iter().filter(|s| self.selected(&s.hypotheses[0])).count(),
                 images_trained: targets.iter().filter(|t| t.is_some()).count(),
+                positive_share: positive_share(&solved, &targets),
                 pose_change_median_deg: change.as_ref().map(|c| quantile(c, 0.5)),
                 pose_change_p90_deg: change.as_ref().map(|c| quantile(c, 0.9)),
                 mean_score: mean(&solved.iter().map(|s| s.score).collect::<Vec<_>>()),
@@ -165,17 +165,11 @@ impl<'a> Run<'a> {
         let (r, d) = (self.mesh.vertices().len() as i64, self.dim as i64);
         let vertex_features = Tensor::from_slice(&self.c).reshape([r, d]).to_device(device);
         let clutter = Tensor::from_slice(&self.clutter).reshape([-1, d]).to_device(device);
-        let kappa = if self.config.reestimate_kappa && !self.resultant.1.is_empty() {
-            let kappa = self.kappa_estimate();
-            Tensor::from_slice(&kappa).to_device(device)
-        } else {
-            self.source_mesh.kappa.copy()
-        };
         let neural_mesh = NeuralMesh {
             mesh: self.mesh,
             vertex_features,
             clutter,
-            kappa,
+            kappa: self.source_mesh.kappa.copy(),
             tau: self.source_mesh.tau.copy(),
             r_bar: self.source_mesh.r_bar.copy(),
         };
@@ -189,24 +183,6 @@ impl<'a> Run<'a> {
             pseudo_poses,
             fired_ratios,
         })
-    }
-
-    /// `κ̂_r = R̄(D − R̄²)/(1 − R̄²)` from the last pass's fired features; the source κ_r where a
-    /// vertex fired fewer than 2 times.
-    pub(super) fn kappa_estimate(&self) -> Vec<f32> {
-        let d = self.dim;
-        let source = to_host(&self.source_mesh.kappa).unwrap_or_else(|_| vec![0.0; self.resultant.1.len()]);
-        (0..self.resultant.1.len())
-            .map(|v| {
-                let n = self.resultant.1[v];
-                if n < 2 {
-                    return source[v];
-                }
-                let sum = &self.resultant.0[v * d..][..d];
-                let r = (sum.iter().map(|x| x * x).sum::<f32>().sqrt() / n as f32).min(0.999);
-                r * (d as f32 - r * r) / (1.0 - r * r)
-            })
-            .collect()
     }
 
     /// The current backbone's features of the first `n` images (eval mode), on the host.
@@ -261,7 +237,7 @@ impl<'a> Run<'a> {
             self.config.solver.clone(),
         )?;
         // Only host data crosses into the worker threads (tch tensors are not Sync).
-        let (mesh, crop, config, tau) = (&self.mesh, &self.crop, self.config, &self.tau);
+        let (mesh, crop, config, tau, clutter) = (&self.mesh, &self.crop, self.config, &self.tau, &self.clutter);
         features
             .par_iter()
             .map_init(Rasterizer::new, |raster, f| {
@@ -271,8 +247,10 @@ impl<'a> Run<'a> {
                     .iter()
                     .map(|h| {
                         let visible = visible_vertices(raster, mesh, crop, config.solver.stride, &h.pose)?;
-                        let fired = fires(&visible, f, solver.vertex_features(), tau, solver.dim());
-                        Ok(Matches { visible, fired })
+                        let (c, dim) = (solver.vertex_features(), solver.dim());
+                        let fired = fires(&visible, f, c, tau, dim);
+                        let object = on_object(&visible, f, c, clutter, dim);
+                        Ok(Matches { visible, fired, object })
                     })
                     .collect::<Result<Vec<_>>>()?;
                 Ok(Solved { pose: estimate.pose, score: estimate.score, hypotheses })
@@ -290,7 +268,8 @@ impl<'a> Run<'a> {
     /// The matches an image's hypotheses contribute: `(vertex, cell)` pairs.
     pub(super) fn contributions<'m>(&self, solved: &'m Solved) -> impl Iterator<Item = (i64, i64)> + 'm {
         let global = matches!(self.config.selection, Selection::Global(_));
-        let hypotheses = if global { &solved.hypotheses[..1] } else { &solved.hypotheses[..] };
+        let best = global || self.config.vertex_matches == VertexMatches::Best;
+        let hypotheses = if best { &solved.hypotheses[..1] } else { &solved.hypotheses[..] };
         let keep: Vec<bool> = hypotheses.iter().map(|m| self.selected(m)).collect();
         hypotheses.iter().zip(keep).filter(|(_, k)| *k).flat_map(move |(m, _)| {
             m.visible
@@ -315,8 +294,9 @@ impl<'a> Run<'a> {
         let (r, d) = (self.mesh.vertices().len(), self.dim);
         let mut ratios = Vec::with_capacity(features.len());
         let mut touched = vec![false; r];
-        let alpha = self.config.alpha as f32;
-        self.resultant = (vec![0f32; r * d], vec![0usize; r]);
+        // α per round, whatever the number of batches (AdaptConfig::alpha).
+        let batches = features.len().div_ceil(self.config.vertex_batch).max(1);
+        let alpha = (self.config.alpha as f32).powf(1.0 / batches as f32);
         for (b, chunk) in features.chunks(self.config.vertex_batch).enumerate() {
             let solved = self.solve_batch(chunk)?;
             ratios.extend(solved.iter().map(|s| s.hypotheses[0].ratio()));
@@ -335,8 +315,6 @@ impl<'a> Run<'a> {
             }
             for v in (0..r).filter(|&v| counts[v] > 0) {
                 touched[v] = true;
-                self.resultant.1[v] += counts[v];
-                self.resultant.0[v * d..][..d].iter_mut().zip(&sums[v * d..][..d]).for_each(|(a, s)| *a += s);
                 let row = &mut self.c[v * d..][..d];
                 let sum = &sums[v * d..][..d];
                 let k = counts[v] as f32;
@@ -362,9 +340,9 @@ impl<'a> Run<'a> {
         Ok((mean(&ratios), touched.iter().filter(|&&t| t).count() as f64 / r as f64))
     }
 
-    /// Step 6's targets: per image, its pseudo-pose's positives (fired vertices; all visible
-    /// ones under the global filter), or none when it failed the selection or scored below the
-    /// round's `drop_quantile`.
+    /// Step 6's targets: per image, its pseudo-pose's positives ([`Positives`]; all visible
+    /// vertices under the global filter), or none when it failed the selection or scored below
+    /// the round's `drop_quantile`.
     pub(super) fn backbone_targets(&self, solved: &[Solved]) -> Vec<Option<VisibleVertices>> {
         let scores: Vec<f64> = solved.iter().map(|s| s.score).collect();
         let floor = quantile(&scores, self.config.drop_quantile);
@@ -377,11 +355,15 @@ impl<'a> Run<'a> {
                     return None;
                 }
                 let mut v = best.visible.clone();
-                if !global {
-                    let keep = |i: &usize| best.fired[*i];
-                    v.vertices = (0..best.fired.len()).filter(keep).map(|i| best.visible.vertices[i]).collect();
-                    v.cells = (0..best.fired.len()).filter(keep).map(|i| best.visible.cells[i]).collect();
-                }
+                let keep = match self.config.positives {
+                    _ if global => return Some(v),
+                    Positives::Visible => return Some(v),
+                    Positives::Fired => &best.fired,
+                    Positives::Object => &best.object,
+                };
+                // The neighbour mask still uses every vertex's projection (`projected`).
+                let kept = |list: &[i64]| list.iter().zip(keep).filter(|(_, k)| **k).map(|(x, _)| *x).collect();
+                (v.vertices, v.cells) = (kept(&best.visible.vertices), kept(&best.visible.cells));
                 Some(v)
             })
             .collect()
@@ -432,4 +414,16 @@ impl<'a> Run<'a> {
         }
         Ok((sum / steps.max(1) as f64, steps))
     }
+}
+
+/// Mean over the trained images of their positives' share of their visible vertices.
+fn positive_share(solved: &[Solved], targets: &[Option<VisibleVertices>]) -> f64 {
+    let shares: Vec<f64> = solved
+        .iter()
+        .zip(targets)
+        .filter_map(|(s, t)| {
+            Some(t.as_ref()?.vertices.len() as f64 / s.hypotheses[0].visible.vertices.len().max(1) as f64)
+        })
+        .collect();
+    mean(&shares)
 }
