@@ -3,7 +3,11 @@
 mod inputs;
 mod output;
 
-use std::{path::PathBuf, process::ExitCode};
+use std::{
+    path::PathBuf,
+    process::ExitCode,
+    time::{Duration, Instant},
+};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
@@ -14,7 +18,8 @@ use serde_json::{Value, json};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use udapose_client::{
-    AdaptOverrides, BoundingBox, Client, ClientOptions, GateCriterion, JobState, ModelInfo, PoseEstimate, is_terminal,
+    AdaptOverrides, BoundingBox, Client, ClientOptions, Error as ClientError, GateCriterion, JobEvent, JobState,
+    ModelInfo, PoseEstimate, is_terminal,
 };
 use udapose_proto::v1::{EstimateRequest, EstimateResponse, estimate_request::Input};
 
@@ -41,6 +46,8 @@ per line instead: {\"uploads\": ...}, {\"job\": ...}, {\"event\": ...} per event
 Images that met a full buffer (BUFFER_FULL) are resent after a growing pause, and images a
 broken connection left unacknowledged are resent (an image's id is its sha256: a resend is a
 DUPLICATE). If a job of the category is already queued or running, StartJob returns it.
+Following the job, a lost server (restarting, say: the job survives and resumes there) is
+reconnected to for up to 120 s, from the last event seen; a note goes to stderr.
 
 Exit status: 0 the job was ACTIVATED (or, with --no-follow, started); 3 it ended otherwise;
 1 any other error, with one line on stderr: `udapose: error: <what>: <gRPC code>: <message>`.";
@@ -48,7 +55,8 @@ Exit status: 0 the job was ACTIVATED (or, with --no-follow, started); 3 it ended
 const WATCH_HELP: &str = "\
 Output: one `#<SEQ> <STATE> ...` line per event and `gate ...` lines as for `udapose adapt`, then
 `job <ID> ACTIVATED version <VERSION>` or `job <ID> <STATE>: <REASON>`; --json: {\"event\": ...}
-lines, then {\"result\": ...}. Exit status: 0 ACTIVATED, 3 another terminal state, 1 an error.";
+lines, then {\"result\": ...}. A lost server is reconnected to for up to 120 s, from the last
+event seen. Exit status: 0 ACTIVATED, 3 another terminal state, 1 an error.";
 
 /// Talk to a udapose pose-estimation server over gRPC.
 #[derive(Debug, Parser)]
@@ -419,24 +427,40 @@ async fn upload(client: &Client, category: &str, files: &[PathBuf], json: bool) 
     Ok(summary)
 }
 
+/// How long `watch` keeps reconnecting to a server it lost (a restart takes seconds; the job
+/// survives it and resumes there).
+const RECONNECT: Duration = Duration::from_secs(120);
+
 /// Follows a job's events to its end; the exit status says whether it was ACTIVATED.
 async fn watch(client: &Client, job_id: &str, after_seq: u64, json: bool) -> Result<ExitCode> {
-    let mut events = client.watch_job(job_id, after_seq).await.with_context(|| format!("watching job {job_id}"))?;
-    let mut last_gate: Vec<GateCriterion> = Vec::new();
-    let mut last = None;
-    while let Some(event) = events.message().await.with_context(|| format!("watching job {job_id}"))? {
-        if json {
-            println!("{}", json!({ "event": output::event_json(&event) }));
-        } else {
-            println!("{}", output::event_line(&event));
-            if !event.gate.is_empty() && event.gate != last_gate {
-                event.gate.iter().for_each(|c| println!("{}", output::gate_line(c)));
-                last_gate = event.gate.clone();
+    let mut followed = Followed { seq: after_seq, last: None, gate: Vec::new() };
+    let mut lost: Option<Instant> = None;
+    loop {
+        let seen = followed.seq;
+        match followed.until_end(client, job_id, json).await {
+            Ok(()) => break,
+            Err(e @ (ClientError::GaveUp { .. } | ClientError::Connect { .. })) => {
+                if followed.seq > seen {
+                    lost = None;
+                }
+                let since = *lost.get_or_insert_with(|| {
+                    eprintln!(
+                        "lost the server ({e}); reconnecting for up to {} s: the job goes on there",
+                        RECONNECT.as_secs()
+                    );
+                    Instant::now()
+                });
+                if since.elapsed() > RECONNECT {
+                    return Err(e).with_context(|| {
+                        format!("watching job {job_id}; it may still be running: `udapose jobs watch {job_id} --after-seq {}` follows it", followed.seq)
+                    });
+                }
+                tokio::time::sleep(Duration::from_secs(1)).await;
             }
+            Err(e) => return Err(e).with_context(|| format!("watching job {job_id}")),
         }
-        last = Some(event);
     }
-    let Some(last) = last.filter(|e| is_terminal(e.state)) else {
+    let Some(last) = followed.last.filter(|e| is_terminal(e.state)) else {
         bail!("job {job_id}'s events ended before the job did");
     };
     // The job's reason (e.g. the failed criteria) and version; the event's if it cannot be read.
@@ -456,6 +480,34 @@ async fn watch(client: &Client, job_id: &str, after_seq: u64, json: bool) -> Res
     Ok(if last.state == JobState::Activated as i32 { ExitCode::SUCCESS } else { ExitCode::from(JOB_NOT_ACTIVATED) })
 }
 
+/// What `watch` has printed: it resumes after `seq` when it reconnects.
+struct Followed {
+    seq: u64,
+    last: Option<JobEvent>,
+    gate: Vec<GateCriterion>,
+}
+
+impl Followed {
+    /// Prints the job's events after `seq` until the stream ends.
+    async fn until_end(&mut self, client: &Client, job_id: &str, json: bool) -> Result<(), ClientError> {
+        let mut events = client.watch_job(job_id, self.seq).await?;
+        while let Some(event) = events.message().await? {
+            if json {
+                println!("{}", json!({ "event": output::event_json(&event) }));
+            } else {
+                println!("{}", output::event_line(&event));
+                if !event.gate.is_empty() && event.gate != self.gate {
+                    event.gate.iter().for_each(|c| println!("{}", output::gate_line(c)));
+                    self.gate = event.gate.clone();
+                }
+            }
+            self.seq = event.seq;
+            self.last = Some(event);
+        }
+        Ok(())
+    }
+}
+
 async fn estimate(
     client: &Client,
     category: &str,
@@ -465,12 +517,8 @@ async fn estimate(
 ) -> Result<()> {
     let files = expand(inputs)?;
     let width = files.iter().map(|f| f.display().to_string().len() + 3).max().unwrap_or(0).max("IMAGE".len());
-    if !json {
-        println!(
-            "{:width$}  {:>9}  {:>9}  {:>8}  {:>8}  {:>6}  VERSION",
-            "IMAGE", "AZIMUTH", "ELEVATION", "THETA", "DISTANCE", "SCORE"
-        );
-    }
+    // The header comes with the first row: a run whose images all fail prints no table.
+    let mut header = !json;
     let mut failed = 0;
     for file in &files {
         let name = file.display().to_string();
@@ -488,7 +536,15 @@ async fn estimate(
         .await;
         match result {
             Ok(response) if json => println!("{}", response_json(&name, &response)),
-            Ok(response) => print_rows(&name, &response, width),
+            Ok(response) => {
+                if std::mem::take(&mut header) {
+                    println!(
+                        "{:width$}  {:>9}  {:>9}  {:>8}  {:>8}  {:>6}  VERSION",
+                        "IMAGE", "AZIMUTH", "ELEVATION", "THETA", "DISTANCE", "SCORE"
+                    );
+                }
+                print_rows(&name, &response, width)
+            }
             Err(e) => {
                 failed += 1;
                 eprintln!("{name}: {e:#}");

@@ -427,6 +427,7 @@ fn grpc_code(e: &ApiError) -> tonic::Code {
         ApiError::Aborted(_) => tonic::Code::Aborted,
         ApiError::FailedPrecondition(_) => tonic::Code::FailedPrecondition,
         ApiError::DeadlineExceeded(_) => tonic::Code::DeadlineExceeded,
+        ApiError::MethodNotAllowed(_) => tonic::Code::Unimplemented,
         ApiError::Internal(_) => tonic::Code::Internal,
     }
 }

@@ -70,6 +70,7 @@ pub fn router(service: Arc<Service>) -> Router {
         .route("/v1/jobs/{id}/events", get(job_events))
         .route("/v1/jobs/{id}/cancel", post(cancel_job))
         .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
         // axum's own default (2 MB) is below the documented 16 MiB; multipart reads obey it.
         .layer(DefaultBodyLimit::max(limit))
         .with_state(service)
@@ -136,6 +137,11 @@ async fn metrics(State(service): State<Arc<Service>>) -> impl IntoResponse {
 
 async fn not_found(State(service): State<Arc<Service>>) -> HttpError {
     refuse(&service, ApiError::NotFound("no such route; see /openapi.json".into()))
+}
+
+async fn method_not_allowed(State(service): State<Arc<Service>>, request: Request) -> HttpError {
+    let (method, path) = (request.method().clone(), request.uri().path().to_owned());
+    refuse(&service, ApiError::MethodNotAllowed(format!("{method} is not allowed on {path}; see /openapi.json")))
 }
 
 async fn list_models(State(service): State<Arc<Service>>, headers: HeaderMap) -> Result<Json<Value>, HttpError> {
@@ -438,6 +444,8 @@ async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiErr
             Err(e) => return Err(ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))),
         };
         let is_image = field.name() == Some("image");
+        // A file part may be the image under another name; a text field (`-F foo=bar`) is not.
+        let is_file = field.file_name().is_some();
         let data = field.bytes().await.map_err(|e| {
             if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
                 too_large()
@@ -448,9 +456,15 @@ async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiErr
         if is_image {
             return Ok(data);
         }
-        first.get_or_insert(data);
+        if is_file {
+            first.get_or_insert(data);
+        }
     }
-    first.ok_or_else(|| ApiError::InvalidArgument("the multipart form has no image part".into()))
+    first.ok_or_else(|| {
+        ApiError::InvalidArgument(
+            "the multipart form has no image part (send the file as `-F image=@photo.jpg`)".into(),
+        )
+    })
 }
 
 #[derive(Debug, Default, PartialEq)]

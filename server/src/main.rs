@@ -79,6 +79,10 @@ struct Args {
     /// Largest decoded image width or height, in pixels.
     #[arg(long, value_name = "PX", default_value_t = 8192)]
     max_image_side: u32,
+    /// Most memory the estimates' images may hold at once, decoding or waiting for a worker
+    /// (MiB); more wait for room until their deadline. An 8192×8192 RGBA PNG needs 448 MiB.
+    #[arg(long, value_name = "MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..=1 << 22))]
+    max_decoded_mib: u64,
     /// Inference worker threads per category (each holds its own model copy).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     workers: u32,
@@ -98,7 +102,10 @@ struct Args {
     /// Deadline of a request that brings none, in milliseconds.
     #[arg(long, default_value_t = 30_000)]
     timeout_ms: u64,
-    /// libtorch intra-op threads (0: one per core). Set once at start.
+    /// libtorch intra-op threads (0: one per core). Set once at start. One per core is fastest
+    /// on an idle machine; on a shared or loaded host spinning threads fight the other work
+    /// (measured: 560 ms a backbone pass with one per core on a loaded host, 170 ms with 1), so
+    /// give the server `cores / workers` or 1 there.
     #[arg(long, default_value_t = 0)]
     torch_threads: i32,
     /// Bearer token with the admin role (required on everything but /, /openapi.json, health,
@@ -198,7 +205,11 @@ async fn main() -> Result<()> {
     }
     let limits = Limits {
         max_request_bytes: usize::try_from(args.max_request_bytes).context("--max-request-bytes")?,
-        decode: DecodeLimits { max_side: args.max_image_side, ..DecodeLimits::default() },
+        decode: DecodeLimits {
+            max_side: args.max_image_side,
+            in_flight: args.max_decoded_mib << 20,
+            ..DecodeLimits::default()
+        },
         default_timeout: Duration::from_millis(args.timeout_ms),
     };
     let jobs = Jobs::start(

@@ -3,7 +3,7 @@
 
 use std::{io::Cursor, panic::AssertUnwindSafe};
 
-use image::{ImageFormat, ImageReader, Limits, error::ImageError};
+use image::{ImageDecoder, ImageFormat, ImageReader, Limits, error::ImageError};
 
 use crate::{api::Pixels, error::ApiError};
 
@@ -14,26 +14,70 @@ pub struct DecodeLimits {
     pub max_side: u32,
     /// Largest allocation the decoder may make, in bytes.
     pub max_alloc: u64,
+    /// Most bytes that the estimates' images may occupy at once, decoding or decoded and
+    /// waiting for the worker ([`Header::cost`]): a small file can claim a huge image, so the
+    /// number of requests bounds nothing.
+    pub in_flight: u64,
 }
 
 impl Default for DecodeLimits {
     fn default() -> Self {
-        DecodeLimits { max_side: 8192, max_alloc: 512 * 1024 * 1024 }
+        // 1 GiB in flight: an 8192×8192 RGBA image costs 470 MB while it decodes.
+        DecodeLimits { max_side: 8192, max_alloc: 512 * 1024 * 1024, in_flight: 1 << 30 }
     }
+}
+
+/// What an encoded image's header says, read without decoding it.
+#[derive(Debug, Clone, Copy)]
+pub struct Header {
+    format: ImageFormat,
+    pub width: u32,
+    pub height: u32,
+    /// Bytes per pixel of the decoder's own buffer (RGBA16: 8).
+    bytes_per_pixel: u64,
+}
+
+impl Header {
+    /// Checks the format, the JPEG's end and the size against `limits`.
+    pub fn read(bytes: &[u8], limits: DecodeLimits) -> Result<Header, ApiError> {
+        if bytes.is_empty() {
+            return Err(ApiError::InvalidArgument("empty image: the request carried no bytes".into()));
+        }
+        guarded(|| read_header(bytes, limits))
+    }
+
+    /// Peak bytes while decoding and after: the decoder's buffer plus the RGB8 copy, unless the
+    /// file is RGB8 already.
+    pub fn cost(&self) -> u64 {
+        let pixels = u64::from(self.width) * u64::from(self.height);
+        if self.bytes_per_pixel == 3 { pixels * 3 } else { pixels * (self.bytes_per_pixel + 3) }
+    }
+
+    /// Decodes the image to RGB8.
+    pub fn decode(&self, bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
+        guarded(|| decode_checked(bytes, *self, limits))
+    }
+}
+
+/// What [`raw`] pixels of this size cost in flight (their copy).
+pub fn raw_cost(width: u32, height: u32) -> u64 {
+    u64::from(width) * u64::from(height) * 3
 }
 
 /// Decodes PNG, JPEG or WebP bytes to RGB8 within `limits`.
 pub fn decode(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
-    if bytes.is_empty() {
-        return Err(ApiError::InvalidArgument("empty image: the request carried no bytes".into()));
-    }
-    match std::panic::catch_unwind(AssertUnwindSafe(|| decode_unguarded(bytes, limits))) {
+    Header::read(bytes, limits)?.decode(bytes, limits)
+}
+
+/// A decoder panic is a bad image, not a dead thread.
+fn guarded<T>(f: impl FnOnce() -> Result<T, ApiError>) -> Result<T, ApiError> {
+    match std::panic::catch_unwind(AssertUnwindSafe(f)) {
         Ok(result) => result,
         Err(_) => Err(ApiError::InvalidArgument("the image decoder failed on this file (corrupt image)".into())),
     }
 }
 
-fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiError> {
+fn read_header(bytes: &[u8], limits: DecodeLimits) -> Result<Header, ApiError> {
     let format = image::guess_format(bytes)
         .ok()
         .filter(|f| matches!(f, ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::WebP));
@@ -49,11 +93,18 @@ fn decode_unguarded(bytes: &[u8], limits: DecodeLimits) -> Result<Pixels, ApiErr
     }
     // The header's size first (reading it allocates nothing): a small file may claim a huge
     // image (decompression bomb), and the caller should hear which size was refused.
-    let (w, h) =
-        ImageReader::with_format(Cursor::new(bytes), format).into_dimensions().map_err(|e| describe(e, format))?;
-    if w > limits.max_side || h > limits.max_side {
-        return Err(too_big(w, h, limits));
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    reader.no_limits();
+    let decoder = reader.into_decoder().map_err(|e| describe(e, format))?;
+    let ((width, height), color) = (decoder.dimensions(), decoder.color_type());
+    if width > limits.max_side || height > limits.max_side {
+        return Err(too_big(width, height, limits));
     }
+    Ok(Header { format, width, height, bytes_per_pixel: u64::from(color.bytes_per_pixel()) })
+}
+
+fn decode_checked(bytes: &[u8], header: Header, limits: DecodeLimits) -> Result<Pixels, ApiError> {
+    let format = header.format;
     let mut l = Limits::default();
     l.max_image_width = Some(limits.max_side);
     l.max_image_height = Some(limits.max_side);
@@ -157,6 +208,18 @@ mod tests {
             }
         }
         !crc
+    }
+
+    #[test]
+    fn the_header_prices_an_image_before_it_decodes() {
+        // A bomb's header: 30000×7000 RGB8 claimed by a 1×1 file, refused by its size only
+        // past the side limit.
+        let limits = DecodeLimits { max_side: 30000, ..DecodeLimits::default() };
+        let header = Header::read(&png_header(30000, 7000), limits).unwrap();
+        assert_eq!((header.width, header.height, header.cost()), (30000, 7000, 30000 * 7000 * 3));
+        let mut gray = Vec::new();
+        image::GrayImage::new(40, 10).write_to(&mut Cursor::new(&mut gray), ImageFormat::Png).unwrap();
+        assert_eq!(Header::read(&gray, limits).unwrap().cost(), 40 * 10 * 4, "L8 buffer + RGB8 copy");
     }
 
     #[test]

@@ -33,6 +33,9 @@ pub enum ApiError {
     /// The deadline passed before the estimate started: DEADLINE_EXCEEDED / 504.
     #[error("{0}")]
     DeadlineExceeded(String),
+    /// An HTTP method the route does not take: UNIMPLEMENTED / 405.
+    #[error("{0}")]
+    MethodNotAllowed(String),
     /// A bug or a broken model: INTERNAL / 500.
     #[error("{0}")]
     Internal(String),
@@ -51,6 +54,7 @@ impl ApiError {
             ApiError::Aborted(_) => "ABORTED",
             ApiError::FailedPrecondition(_) => "FAILED_PRECONDITION",
             ApiError::DeadlineExceeded(_) => "DEADLINE_EXCEEDED",
+            ApiError::MethodNotAllowed(_) => "UNIMPLEMENTED",
             ApiError::Internal(_) => "INTERNAL",
         }
     }
@@ -66,6 +70,7 @@ impl ApiError {
             ApiError::Aborted(_) => 409,
             ApiError::FailedPrecondition(_) => 400,
             ApiError::DeadlineExceeded(_) => 504,
+            ApiError::MethodNotAllowed(_) => 405,
             ApiError::Internal(_) => 500,
         }
     }

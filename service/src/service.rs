@@ -7,7 +7,7 @@ use std::{
 };
 
 use serde::Serialize;
-use tokio::sync::{Semaphore, oneshot};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, oneshot};
 use tracing::Instrument;
 
 use crate::{
@@ -24,6 +24,9 @@ use crate::{
 
 /// Most boxes in one request.
 pub const MAX_BOXES: usize = 16;
+
+/// How long `CancelJob` waits for a running job to stop before it answers.
+pub const CANCEL_WAIT: std::time::Duration = std::time::Duration::from_secs(30);
 
 #[derive(Debug, Clone)]
 pub struct Limits {
@@ -42,6 +45,9 @@ pub struct Service {
     pub jobs: Arc<Jobs>,
     /// Decodes running at once (each may hold a large image in memory).
     decode_slots: Semaphore,
+    /// The estimates' image bytes in flight, in KiB permits (`DecodeLimits::in_flight`): taken
+    /// before an image decodes, given back when its job is dropped.
+    in_flight: Arc<Semaphore>,
 }
 
 impl Service {
@@ -53,7 +59,8 @@ impl Service {
         jobs: Arc<Jobs>,
     ) -> Self {
         let slots = std::thread::available_parallelism().map_or(2, |n| n.get()) * 2;
-        Service { registry, limits, metrics, tokens, jobs, decode_slots: Semaphore::new(slots) }
+        let in_flight = Arc::new(Semaphore::new(kib(limits.decode.in_flight) as usize));
+        Service { registry, limits, metrics, tokens, jobs, decode_slots: Semaphore::new(slots), in_flight }
     }
 
     /// The category, if the name is valid and configured.
@@ -131,10 +138,11 @@ impl Service {
         }
         let timeout = input.timeout.filter(|t| !t.is_zero()).unwrap_or(self.limits.default_timeout);
         let decode_started = Instant::now();
-        let pixels = self.decode(input.image).await?;
+        let deadline = arrived + timeout;
+        let (pixels, in_flight) = self.decode(input.image, deadline).await?;
         let decode_ms = decode_started.elapsed().as_secs_f64() * 1e3;
         let (reply, answer) = oneshot::channel();
-        let job = Job { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline: arrived + timeout, reply };
+        let job = Job { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline, reply, in_flight };
         category.submit(job)?;
         let queued = category.queued() as i64;
         self.metrics.queue_depth.with_label_values(&[category.name.as_str()]).set(queued);
@@ -157,16 +165,54 @@ impl Service {
         })
     }
 
-    /// Decodes on a blocking thread, never on the async runtime.
-    async fn decode(&self, image: ImageInput) -> Result<crate::api::Pixels, ApiError> {
+    /// Decodes on a blocking thread, never on the async runtime, once the image's bytes fit in
+    /// the in-flight budget (waiting for it until `deadline`).
+    async fn decode(
+        &self,
+        image: ImageInput,
+        deadline: Instant,
+    ) -> Result<(crate::api::Pixels, OwnedSemaphorePermit), ApiError> {
         let limits = self.limits.decode;
         let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
-        let task = tokio::task::spawn_blocking(move || match image {
-            ImageInput::Encoded(bytes) => decode::decode(&bytes, limits),
-            ImageInput::Raw { width, height, rgb8 } => decode::raw(width, height, &rgb8, limits),
-        });
-        task.await.map_err(|_| ApiError::InvalidArgument("the image decoder failed on this file".into()))?
+        Ok(match image {
+            ImageInput::Encoded(bytes) => {
+                let head = bytes.clone();
+                let header = blocking(move || decode::Header::read(&head, limits)).await?;
+                let permit = self.reserve(header.cost(), deadline).await?;
+                (blocking(move || header.decode(&bytes, limits)).await?, permit)
+            }
+            ImageInput::Raw { width, height, rgb8 } => {
+                let permit = self.reserve(decode::raw_cost(width, height), deadline).await?;
+                (blocking(move || decode::raw(width, height, &rgb8, limits)).await?, permit)
+            }
+        })
     }
+
+    /// `bytes` of the in-flight budget, waited for until `deadline`.
+    async fn reserve(&self, bytes: u64, deadline: Instant) -> Result<OwnedSemaphorePermit, ApiError> {
+        let budget = self.limits.decode.in_flight;
+        if bytes > budget {
+            return Err(ApiError::TooLarge(format!(
+                "the image decodes to {} MiB, over the server's in-flight budget of {} MiB",
+                bytes >> 20,
+                budget >> 20
+            )));
+        }
+        let wait = self.in_flight.clone().acquire_many_owned(kib(bytes));
+        match tokio::time::timeout_at(deadline.into(), wait).await {
+            Ok(Ok(permit)) => Ok(permit),
+            Ok(Err(_)) => Err(ApiError::Internal("shutting down".into())),
+            Err(_) => Err(ApiError::unavailable(format!(
+                "overloaded: other images hold the in-flight budget of {} MiB past the deadline; retry later",
+                budget >> 20
+            ))),
+        }
+    }
+}
+
+/// Whole KiB, rounded up (the budget's permits; u32 holds 4 TiB).
+fn kib(bytes: u64) -> u32 {
+    u32::try_from(bytes.div_ceil(1024)).unwrap_or(u32::MAX)
 }
 
 /// One version of a category in the store.
@@ -236,9 +282,30 @@ impl Service {
         blocking(move || jobs.get(&id)).await
     }
 
+    /// `CancelJob`: asks the job to stop and answers once it has (a running job stops at its
+    /// next progress report, within seconds), or after [`CANCEL_WAIT`] with its state then.
     pub async fn cancel_job(&self, id: String, reason: String) -> Result<JobView, ApiError> {
+        // Subscribed first, so that the terminal event cannot slip in between.
+        let mut events = self.jobs.subscribe();
+        let (jobs, job) = (self.jobs.clone(), id.clone());
+        let view = blocking(move || jobs.cancel(&job, &reason)).await?;
+        if view.state.terminal() {
+            return Ok(view);
+        }
+        let deadline = tokio::time::Instant::now() + CANCEL_WAIT;
+        loop {
+            use tokio::sync::broadcast::error::RecvError;
+            match tokio::time::timeout_at(deadline, events.recv()).await {
+                Ok(Ok(e)) if e.job_id == id && e.state.terminal() => break,
+                Ok(Ok(_)) => {}
+                // Events were dropped: the state itself says whether ours was among them.
+                Ok(Err(RecvError::Lagged(_))) if self.jobs.get(&id)?.state.terminal() => break,
+                Ok(Err(RecvError::Lagged(_))) => {}
+                Ok(Err(RecvError::Closed)) | Err(_) => break,
+            }
+        }
         let jobs = self.jobs.clone();
-        blocking(move || jobs.cancel(&id, &reason)).await
+        blocking(move || jobs.get(&id)).await
     }
 
     /// Activates `version` (`None`: rolls back to the head's previous version) and swaps the
@@ -280,6 +347,10 @@ impl Service {
             return Err(ApiError::TooLarge(format!("image over the limit of {} bytes", self.limits.max_request_bytes)));
         }
         let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
+        // Its decode (a check) holds budget too; a bad header is the buffer's to reject.
+        let (head, limits) = (bytes.clone(), self.limits.decode);
+        let cost = blocking(move || Ok(decode::Header::read(&head, limits).map_or(0, |h| h.cost()))).await?;
+        let _in_flight = self.reserve(cost, Instant::now() + self.limits.default_timeout).await?;
         let jobs = self.jobs.clone();
         blocking(move || Ok(jobs.put_target(&name, &bytes))).await
     }

@@ -81,7 +81,8 @@ fn corrupt(path: impl Into<String>, reason: impl ToString) -> StoreError {
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Activation {
     pub version: String,
-    /// The version active before this one (what a rollback re-activates).
+    /// What a rollback from this entry re-activates: the version active before it, or, for an
+    /// entry a rollback wrote, the version that preceded its target (so rollbacks walk back).
     pub previous: Option<String>,
     pub actor: String,
     pub reason: String,
@@ -89,6 +90,30 @@ pub struct Activation {
     pub time: u64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub job_id: Option<String>,
+}
+
+impl Activation {
+    fn new(version: &str, previous: Option<String>, actor: &str, reason: &str, job_id: Option<&str>) -> Self {
+        Activation {
+            version: version.into(),
+            previous,
+            actor: actor.into(),
+            reason: reason.into(),
+            time: SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()),
+            job_id: job_id.map(str::to_owned),
+        }
+    }
+}
+
+/// `Conflict` unless `expected` (when given) is the active generation.
+fn check_generation(category: &str, head: Option<&(u64, Activation)>, expected: Option<u64>) -> Result<()> {
+    let found = head.map(|(g, _)| *g);
+    match expected {
+        Some(expected) if Some(expected) != found => {
+            Err(StoreError::Conflict { category: category.into(), expected, found: found.unwrap_or(0) })
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Whether `name` may be a category: 1-64 of `[a-z0-9_-]`, starting with a letter or digit.
@@ -370,7 +395,8 @@ impl Store {
 
     /// Activates `version` as the next generation, for `job_id` when a job's gate passed. With
     /// `expected_generation`, fails with `Conflict` unless that generation is the active one;
-    /// a lost race is a `Conflict` too.
+    /// a lost race is a `Conflict` too. Activating the active version writes nothing and
+    /// returns its generation.
     pub fn activate(
         &self,
         category: &str,
@@ -382,35 +408,46 @@ impl Store {
     ) -> Result<u64> {
         self.manifest(category, version)?;
         let head = self.head(category)?;
-        let current = head.as_ref().map(|(g, _)| *g);
-        if let (Some(expected), found) = (expected_generation, current)
-            && Some(expected) != found
-        {
-            return Err(StoreError::Conflict { category: category.into(), expected, found: found.unwrap_or(0) });
+        check_generation(category, head.as_ref(), expected_generation)?;
+        match head {
+            Some((generation, active)) if active.version == version => Ok(generation),
+            head => {
+                let previous = head.as_ref().map(|(_, a)| a.version.clone());
+                let entry = Activation::new(version, previous, actor, reason, job_id);
+                self.append_activation(category, head.map(|(g, _)| g), entry)
+            }
         }
+    }
+
+    /// Undoes the active entry: re-activates its `previous` version, and records as *that*
+    /// entry's previous what was active before it, so that rollbacks walk back through the log
+    /// (v1 → v2 → v3, rollback: v2, rollback: v1) instead of toggling.
+    pub fn rollback(&self, category: &str, actor: &str, reason: &str, expected_generation: Option<u64>) -> Result<u64> {
+        let no_previous = || StoreError::NoPrevious(category.into());
+        let head = self.head(category)?.ok_or_else(no_previous)?;
+        check_generation(category, Some(&head), expected_generation)?;
+        let (generation, active) = head;
+        let target = active.previous.ok_or_else(no_previous)?;
+        self.manifest(category, &target)?;
+        // The newest earlier entry that activated the target says what preceded it.
+        let before = self
+            .activations(category)?
+            .into_iter()
+            .find(|(g, a)| *g < generation && a.version == target)
+            .and_then(|(_, a)| a.previous);
+        self.append_activation(category, Some(generation), Activation::new(&target, before, actor, reason, None))
+    }
+
+    /// Writes `entry` as the generation after `current`, create-only (a lost race: `Conflict`).
+    fn append_activation(&self, category: &str, current: Option<u64>, entry: Activation) -> Result<u64> {
         let generation = current.map_or(0, |g| g + 1);
-        let activation = Activation {
-            version: version.into(),
-            previous: head.map(|(_, a)| a.version),
-            actor: actor.into(),
-            reason: reason.into(),
-            time: SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs()),
-            job_id: job_id.map(str::to_owned),
-        };
-        let bytes = serde_json::to_vec_pretty(&activation).expect("an activation serialises");
+        let bytes = serde_json::to_vec_pretty(&entry).expect("an activation serialises");
         if self.create(&Self::activation_key(category, generation), bytes)? {
             Ok(generation)
         } else {
             let found = self.head(category)?.map_or(0, |(g, _)| g);
             Err(StoreError::Conflict { category: category.into(), expected: current.unwrap_or(0), found })
         }
-    }
-
-    /// Re-activates the active entry's `previous` version.
-    pub fn rollback(&self, category: &str, actor: &str, reason: &str, expected_generation: Option<u64>) -> Result<u64> {
-        let (generation, head) = self.head(category)?.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
-        let previous = head.previous.ok_or_else(|| StoreError::NoPrevious(category.into()))?;
-        self.activate(category, &previous, actor, reason, Some(expected_generation.unwrap_or(generation)), None)
     }
 
     /// Writes a new version: `write` fills a local temporary directory, whose files are

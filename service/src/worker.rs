@@ -47,6 +47,8 @@ pub struct Job {
     pub enqueued: Instant,
     pub deadline: Instant,
     pub reply: oneshot::Sender<Result<WorkerAnswer, ApiError>>,
+    /// The image's share of the in-flight budget, given back when the job is dropped.
+    pub in_flight: tokio::sync::OwnedSemaphorePermit,
 }
 
 impl Job {

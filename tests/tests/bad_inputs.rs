@@ -102,6 +102,26 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
     expect(post("/v1/pose/car?bbox=1,2,3", &good), 400, "INVALID_ARGUMENT", "bad bbox");
     expect(post("/v1/pose/car?bbox=-10,0,50,50", &good), 400, "INVALID_ARGUMENT", "leaves the 160x64 image");
     expect(post("/v1/pose/car", &vec![0u8; LIMIT + 1]), 413, "RESOURCE_EXHAUSTED", "over the limit");
+    // A huge coordinate is quoted short, not as 301 digits.
+    let far = post("/v1/pose/car?bbox=0,0,1e300,100", &good);
+    assert!(far.body.len() < 300, "{}", far.body);
+    expect(far, 400, "INVALID_ARGUMENT", "1e300");
+    // A form whose only part is a text field has no image (its text is not tried as one).
+    let form = "--XyZ\r\nContent-Disposition: form-data; name=\"foo\"\r\n\r\nbar\r\n--XyZ--\r\n";
+    let multipart = [("Authorization", auth.as_str()), ("Content-Type", "multipart/form-data; boundary=XyZ")];
+    expect(
+        server.request("POST", "/v1/pose/car", &multipart, form.as_bytes()),
+        400,
+        "INVALID_ARGUMENT",
+        "no image part",
+    );
+    // A wrong method is a JSON error too.
+    expect(
+        server.request("GET", "/v1/pose/car", &[("Authorization", &auth)], b""),
+        405,
+        "UNIMPLEMENTED",
+        "GET is not allowed",
+    );
     // A deadline shorter than the batching delay (5 ms) passes before the estimate starts.
     expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
     let missing = server.request("POST", "/v1/pose/car", &[], &good);
@@ -176,4 +196,40 @@ async fn grpc_cases(server: &Server, good: &[u8], cases: &[(&str, Vec<u8>, u16, 
 
     let answer = client.estimate(udapose_client::request("car", good.to_vec())).await.unwrap();
     assert_eq!(answer.estimates.len(), 1);
+}
+
+/// An 8192×8192 RGBA PNG of zeros: 260 KB that decode to 268 MB (470 MB with the RGB copy).
+fn zeros_8192() -> Vec<u8> {
+    use image::{ImageEncoder, codecs::png};
+    let mut out = Vec::new();
+    let encoder = png::PngEncoder::new_with_quality(&mut out, png::CompressionType::Best, png::FilterType::NoFilter);
+    encoder.write_image(&vec![0; 8192 * 8192 * 4], 8192, 8192, image::ExtendedColorType::Rgba8).unwrap();
+    out
+}
+
+#[test]
+fn sixteen_parallel_bombs_stay_within_the_decoded_budget() {
+    let server = Server::config("bombs").quick_model().start();
+    let bomb = zeros_8192();
+    assert!(bomb.len() < 1_000_000, "{} bytes", bomb.len());
+    let good = quick_images("source", 1).remove(0).bytes;
+    assert_eq!(server.request("POST", "/v1/pose/car", &[], &good).status, 200);
+    let idle = server.memory_kib("VmRSS");
+    // Each waits for its share of the default 1024 MiB budget: 2 at a time.
+    let statuses: Vec<u16> = std::thread::scope(|s| {
+        let send = || server.request("POST", "/v1/pose/car?timeout_ms=300000", &[], &bomb).status;
+        let threads: Vec<_> = (0..16).map(|_| s.spawn(send)).collect();
+        threads.into_iter().map(|t| t.join().unwrap()).collect()
+    });
+    assert!(statuses.iter().all(|&s| s == 200), "{statuses:?}\n{}", server.log());
+    let peak = server.memory_kib("VmHWM");
+    let above = (peak.saturating_sub(idle)) as f64 / (1 << 20) as f64;
+    eprintln!(
+        "idle {:.2} GiB, peak {:.2} GiB: {above:.2} GiB above idle",
+        idle as f64 / 1048576.0,
+        peak as f64 / 1048576.0
+    );
+    // Unbounded, the 16 would hold 7.3 GiB at once.
+    assert!(above <= 1.5, "peak RSS {above:.2} GiB above idle");
+    assert_eq!(server.get("/readyz").0, 200);
 }

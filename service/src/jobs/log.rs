@@ -37,7 +37,10 @@ impl Jobs {
                 continue; // being created: its first event follows
             }
             let id = spec.job_id.clone();
-            let last = events.last().cloned().unwrap_or_else(|| first_event(&spec));
+            let last = events
+                .last()
+                .cloned()
+                .unwrap_or_else(|| first_event(&spec, self.adapt_config(&spec).max_rounds as u32));
             let state = if events.is_empty() { None } else { Some(last.state) };
             self.lock().jobs.insert(
                 id.clone(),
@@ -76,6 +79,8 @@ impl Jobs {
                 _ => {
                     self.append(&id, JobState::Queued, |e| {
                         e.message = "interrupted by a restart; runs again from its buffered images".into();
+                        // It starts over: the interrupted run's progress no longer applies.
+                        (e.round, e.eta_seconds, e.fired_ratio, e.pose_change_median_deg) = (0, 0.0, 0.0, None);
                     })?;
                     take(self);
                 }

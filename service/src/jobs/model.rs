@@ -156,7 +156,8 @@ pub(super) fn held_out(sha_hex: &str) -> bool {
     gate::held_out(&bytes)
 }
 
-pub(super) fn first_event(spec: &JobSpec) -> JobEvent {
+/// The job's QUEUED event; `max_rounds` is what its run will allow.
+pub(super) fn first_event(spec: &JobSpec, max_rounds: u32) -> JobEvent {
     JobEvent {
         job_id: spec.job_id.clone(),
         seq: 0,
@@ -164,7 +165,7 @@ pub(super) fn first_event(spec: &JobSpec) -> JobEvent {
         time: spec.created,
         message: String::new(),
         round: 0,
-        max_rounds: 0,
+        max_rounds,
         fired_ratio: 0.0,
         pose_change_median_deg: None,
         images_used: spec.train.len() as u32,

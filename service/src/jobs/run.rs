@@ -49,7 +49,7 @@ impl Jobs {
     }
 
     /// The server's adaptation settings with the job's overrides.
-    fn adapt_config(&self, spec: &JobSpec) -> AdaptConfig {
+    pub(super) fn adapt_config(&self, spec: &JobSpec) -> AdaptConfig {
         let mut config = self.config.adapt.clone();
         let o = &spec.overrides;
         config.max_rounds = o.max_rounds.map_or(config.max_rounds, |r| r as usize);

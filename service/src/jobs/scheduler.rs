@@ -135,7 +135,7 @@ impl Jobs {
             Err(e) => return Err(ApiError::Internal(format!("writing job {}: {e}", spec.job_id))),
         }
         let id = spec.job_id.clone();
-        let first = first_event(&spec);
+        let first = first_event(&spec, self.adapt_config(&spec).max_rounds as u32);
         let owned = self.config.runs_jobs;
         let memo = Memo { spec, last: first, owned, cancel: Default::default(), cancel_reason: String::new() };
         self.lock().jobs.insert(id.clone(), memo);

@@ -91,9 +91,13 @@ fn activation_is_create_only_and_checks_the_expected_generation() {
     let err = store.activate("car", &seed, "test", "stale", Some(0), None).unwrap_err();
     assert!(matches!(err, StoreError::Conflict { expected: 0, found: 1, .. }), "{err}");
     assert!(matches!(store.activate("car", "nope", "t", "r", None, None), Err(StoreError::UnknownVersion { .. })));
+    // Activating the active version is a no-op.
+    assert_eq!(store.activate("car", "v2", "test", "again", Some(1), None).unwrap(), 1);
     assert_eq!(store.rollback("car", "test", "back", None).unwrap(), 2);
     let (generation, head) = store.head("car").unwrap().unwrap();
-    assert_eq!((generation, head.version, head.previous.as_deref()), (2, seed.clone(), Some("v2")));
+    // Rolled back to the seed, which nothing preceded: a second rollback has nowhere to go.
+    assert_eq!((generation, head.version, head.previous), (2, seed.clone(), None));
+    assert!(matches!(store.rollback("car", "test", "again", None), Err(StoreError::NoPrevious(_))));
     // A restart does not re-activate the seed over a newer activation... unless it is a seed.
     store.import_seed("car", &shipped()).unwrap();
     assert_eq!(store.head("car").unwrap().unwrap().0, 2);
@@ -101,6 +105,29 @@ fn activation_is_create_only_and_checks_the_expected_generation() {
     assert!(store.create("x.json", b"1".to_vec()).unwrap());
     assert!(!store.create("x.json", b"2".to_vec()).unwrap());
     assert_eq!(store.read("x.json").unwrap().unwrap(), b"1");
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn rollbacks_walk_back_through_the_log() {
+    let root = temp("walk");
+    let store = Store::open(&root).unwrap();
+    let seed = store.import_seed("car", &shipped()).unwrap();
+    for v in ["v2", "v3"] {
+        store.upload_dir(&format!("models/car/versions/{v}"), &shipped(), None).unwrap();
+        store.activate("car", v, "test", "next", None, None).unwrap();
+    }
+    let active = |store: &Store| store.head("car").unwrap().unwrap().1.version;
+    store.rollback("car", "test", "undo v3", None).unwrap();
+    assert_eq!(active(&store), "v2");
+    store.rollback("car", "test", "undo v2", Some(3)).unwrap();
+    assert_eq!(active(&store), seed, "the second rollback toggled back instead of walking back");
+    assert!(matches!(store.rollback("car", "test", "undo seed", None), Err(StoreError::NoPrevious(_))));
+    // A new activation starts a new trail: its rollback returns to the seed, then stops.
+    store.activate("car", "v3", "test", "again", None, None).unwrap();
+    store.rollback("car", "test", "undo v3 again", None).unwrap();
+    assert_eq!(active(&store), seed);
+    assert!(matches!(store.rollback("car", "test", "stop", None), Err(StoreError::NoPrevious(_))));
     fs::remove_dir_all(&root).unwrap();
 }
 

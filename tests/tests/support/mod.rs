@@ -158,7 +158,13 @@ impl Server {
 
     /// Like [`Server::crash_and_restart`], but only starts the new process (for failpoints).
     pub fn crash_and_spawn(&mut self, env: &[(&str, &str)]) {
+        self.crash_and_spawn_after(Duration::ZERO, env);
+    }
+
+    /// [`Server::crash_and_spawn`] with `pause` between the two, no server listening.
+    pub fn crash_and_spawn_after(&mut self, pause: Duration, env: &[(&str, &str)]) {
         self.kill9();
+        std::thread::sleep(pause);
         self.child = spawn(&self.command, &self.dir, &[pairs(&self.env), env.to_vec()].concat());
         self.wait_for("/healthz");
     }
@@ -179,6 +185,13 @@ impl Server {
     pub fn stopped(&self) -> bool {
         fs::read_to_string(format!("/proc/{}/stat", self.child.id()))
             .is_ok_and(|stat| stat.rsplit(')').next().is_some_and(|rest| rest.trim_start().starts_with('T')))
+    }
+
+    /// A memory figure of the process from /proc (`VmRSS`, `VmHWM`: its peak), in KiB.
+    pub fn memory_kib(&self, field: &str) -> u64 {
+        let status = fs::read_to_string(format!("/proc/{}/status", self.child.id())).expect("reading /proc");
+        let line = status.lines().find(|l| l.starts_with(&format!("{field}:"))).expect("no such field");
+        line.split_whitespace().nth(1).and_then(|v| v.parse().ok()).expect("a number of kB")
     }
 
     /// The server's `--store` directory.
