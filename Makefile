@@ -52,7 +52,7 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test test-build build venv lite-weights assets browser quick-data quick-model bench bench-check bench-service bench-scale doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build venv lite-weights assets browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -139,6 +139,12 @@ bench-service: build
 # reports/scale.json and .md.
 bench-scale: build $(S3S_FS)
 	$(BIN)/udapose-bench scale --s3s-fs $(S3S_FS)
+
+# reports/bad-inputs.md: every bad input over HTTP and gRPC (fails unless each is answered as
+# specified). Its good image comes from IMAGES (PNG crops of cars).
+IMAGES ?= data/syncar-ood-standard/source/test/images/car
+bench-bad-inputs: build
+	$(BIN)/udapose-bench bad-inputs --images $(IMAGES)
 
 doctor: build
 	$(BIN)/udapose-lab doctor

@@ -3,6 +3,7 @@
 //! validation gate against the true accuracy change, and `scale` measures scale-out on one
 //! machine. Each writes a JSON report and its Markdown twin under `reports/`.
 
+mod bad_inputs;
 mod gate;
 mod harness;
 mod scale;
@@ -37,11 +38,15 @@ enum Bench {
     /// throughput with 1, 2 and 3 replicas, failed requests under faults (kill -9 of a replica
     /// or of the worker mid-job, swaps, a rollback), and the swap propagation time.
     Scale(scale::ScaleArgs),
+    /// Every bad input of the hostile-user review over HTTP and gRPC: status, message, panics
+    /// and health after each (reports/bad-inputs.md); fails unless every row is as specified.
+    BadInputs(bad_inputs::BadInputsArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Bench::Solver(a) => solver::run(&a),
+        Bench::BadInputs(a) => bad_inputs::run(&a),
         Bench::Service(a) => service::run(&a),
         Bench::Gate(a) => gate::run(&a),
         Bench::Scale(a) => scale::run(&a),
