@@ -185,8 +185,11 @@ enum JobsCommand {
         #[arg(long, default_value_t = 0)]
         after_seq: u64,
     },
-    /// Stop a queued or running job (CANCELLED). Prints `job <ID> CANCELLED: <REASON>` (a job
-    /// that had already ended is left as it was and printed as `udapose adapt` does).
+    /// Stop a queued or running job (CANCELLED). Answers once the job has stopped (a running
+    /// one stops at its next progress report, within seconds; at most 30 s are waited) and
+    /// prints `job <ID> CANCELLED: <REASON>`; the job's images leave the buffer and may be
+    /// uploaded again. A job that had already ended is left as it was and printed as `udapose
+    /// adapt` does.
     Cancel {
         id: String,
         /// Recorded with the job.

@@ -378,45 +378,16 @@ fn query_value(query: Option<&str>, key: &str) -> Option<String> {
     query?.split('&').filter_map(|p| p.split_once('=')).find(|(k, _)| *k == key).map(|(_, v)| percent_decode(v))
 }
 
-/// Every part of a multipart form, or the raw body as one image.
-async fn read_images(service: &Service, request: Request) -> Result<Vec<Bytes>, ApiError> {
-    let limit = service.limits.max_request_bytes;
-    let too_large = || ApiError::TooLarge(format!("request body over the limit of {limit} bytes"));
-    let multipart = request
-        .headers()
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.starts_with("multipart/form-data"));
-    if !multipart {
-        let body = axum::body::to_bytes(request.into_body(), limit).await.map_err(|_| too_large())?;
-        return Ok(vec![body]);
-    }
-    let mut form = Multipart::from_request(request, &())
-        .await
-        .map_err(|e| ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text())))?;
-    let mut out = Vec::new();
-    loop {
-        match form.next_field().await {
-            Ok(Some(field)) => out.push(field.bytes().await.map_err(|e| {
-                if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-                    too_large()
-                } else {
-                    ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))
-                }
-            })?),
-            Ok(None) => break,
-            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large()),
-            Err(e) => return Err(ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))),
-        }
-    }
-    if out.is_empty() {
-        return Err(ApiError::InvalidArgument("the multipart form has no image part".into()));
-    }
-    Ok(out)
+/// One part of a request: the raw body, or a part of a multipart form.
+struct Part {
+    name: Option<String>,
+    /// Sent as a file (a form part with a file name; the raw body).
+    file: bool,
+    data: Bytes,
 }
 
-/// The body, or the `image` (else first) part of a multipart form, within the size limit.
-async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiError> {
+/// The raw body as one part, or every part of a multipart form, within the size limit.
+async fn read_parts(service: &Service, request: Request) -> Result<Vec<Part>, ApiError> {
     let limit = service.limits.max_request_bytes;
     let too_large = || ApiError::TooLarge(format!("request body over the limit of {limit} bytes"));
     let declared = request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
@@ -430,41 +401,48 @@ async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiErr
         .is_some_and(|v| v.starts_with("multipart/form-data"));
     if !multipart {
         let body: Body = request.into_body();
-        return axum::body::to_bytes(body, limit).await.map_err(|_| too_large());
+        let data = axum::body::to_bytes(body, limit).await.map_err(|_| too_large())?;
+        return Ok(vec![Part { name: None, file: true, data }]);
     }
-    let mut form = Multipart::from_request(request, &())
-        .await
-        .map_err(|e| ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text())))?;
-    let mut first = None;
+    let bad = |e: &dyn std::fmt::Display| ApiError::InvalidArgument(format!("bad multipart form: {e}"));
+    let mut form = Multipart::from_request(request, &()).await.map_err(|e| bad(&e.body_text()))?;
+    let mut parts = Vec::new();
     loop {
         let field = match form.next_field().await {
             Ok(Some(f)) => f,
-            Ok(None) => break,
+            Ok(None) => return Ok(parts),
             Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large()),
-            Err(e) => return Err(ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))),
+            Err(e) => return Err(bad(&e.body_text())),
         };
-        let is_image = field.name() == Some("image");
-        // A file part may be the image under another name; a text field (`-F foo=bar`) is not.
-        let is_file = field.file_name().is_some();
-        let data = field.bytes().await.map_err(|e| {
-            if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-                too_large()
-            } else {
-                ApiError::InvalidArgument(format!("bad multipart form: {}", e.body_text()))
-            }
-        })?;
-        if is_image {
-            return Ok(data);
-        }
-        if is_file {
-            first.get_or_insert(data);
-        }
+        let (name, file) = (field.name().map(str::to_owned), field.file_name().is_some());
+        let data = field
+            .bytes()
+            .await
+            .map_err(|e| if e.status() == StatusCode::PAYLOAD_TOO_LARGE { too_large() } else { bad(&e.body_text()) })?;
+        parts.push(Part { name, file, data });
     }
-    first.ok_or_else(|| {
-        ApiError::InvalidArgument(
+}
+
+/// Every image of the request: the body, or each part of a multipart form.
+async fn read_images(service: &Service, request: Request) -> Result<Vec<Bytes>, ApiError> {
+    let parts = read_parts(service, request).await?;
+    if parts.is_empty() {
+        return Err(ApiError::InvalidArgument("the multipart form has no image part".into()));
+    }
+    Ok(parts.into_iter().map(|p| p.data).collect())
+}
+
+/// The body, or the `image` part of a multipart form, else its first file part: a text field
+/// (`-F foo=bar`) is not an image.
+async fn read_image(service: &Service, request: Request) -> Result<Bytes, ApiError> {
+    let mut parts = read_parts(service, request).await?;
+    let image = parts.iter().position(|p| p.name.as_deref() == Some("image"));
+    match image.or_else(|| parts.iter().position(|p| p.file)) {
+        Some(i) => Ok(parts.swap_remove(i).data),
+        None => Err(ApiError::InvalidArgument(
             "the multipart form has no image part (send the file as `-F image=@photo.jpg`)".into(),
-        )
-    })
+        )),
+    }
 }
 
 #[derive(Debug, Default, PartialEq)]

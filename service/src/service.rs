@@ -173,19 +173,25 @@ impl Service {
         deadline: Instant,
     ) -> Result<(crate::api::Pixels, OwnedSemaphorePermit), ApiError> {
         let limits = self.limits.decode;
-        let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
+        // A decode slot only once the budget is had: an image waiting for room holds none.
         Ok(match image {
             ImageInput::Encoded(bytes) => {
                 let head = bytes.clone();
                 let header = blocking(move || decode::Header::read(&head, limits)).await?;
                 let permit = self.reserve(header.cost(), deadline).await?;
+                let _slot = self.decode_slot().await?;
                 (blocking(move || header.decode(&bytes, limits)).await?, permit)
             }
             ImageInput::Raw { width, height, rgb8 } => {
                 let permit = self.reserve(decode::raw_cost(width, height), deadline).await?;
+                let _slot = self.decode_slot().await?;
                 (blocking(move || decode::raw(width, height, &rgb8, limits)).await?, permit)
             }
         })
+    }
+
+    async fn decode_slot(&self) -> Result<tokio::sync::SemaphorePermit<'_>, ApiError> {
+        self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))
     }
 
     /// `bytes` of the in-flight budget, waited for until `deadline`.
@@ -346,11 +352,11 @@ impl Service {
         if bytes.len() > self.limits.max_request_bytes {
             return Err(ApiError::TooLarge(format!("image over the limit of {} bytes", self.limits.max_request_bytes)));
         }
-        let _slot = self.decode_slots.acquire().await.map_err(|_| ApiError::Internal("shutting down".into()))?;
         // Its decode (a check) holds budget too; a bad header is the buffer's to reject.
         let (head, limits) = (bytes.clone(), self.limits.decode);
         let cost = blocking(move || Ok(decode::Header::read(&head, limits).map_or(0, |h| h.cost()))).await?;
         let _in_flight = self.reserve(cost, Instant::now() + self.limits.default_timeout).await?;
+        let _slot = self.decode_slot().await?;
         let jobs = self.jobs.clone();
         blocking(move || Ok(jobs.put_target(&name, &bytes))).await
     }

@@ -119,13 +119,25 @@ fn a_person_uploads_an_image_and_sees_the_angles_and_the_cuboid() {
         std::fs::write(path, png.as_str().unwrap()).unwrap(); // base64 PNG, for a person to look at
     }
 
-    // A bad file shows the server's message instead.
+    // The page asks for no favicon (a 404 in every log otherwise).
+    let icon = driver.script("return document.querySelector('link[rel=icon]').href");
+    assert!(icon.as_str().is_some_and(|h| h.starts_with("data:")), "{icon}");
+
+    // A bad file shows the server's message instead, and leaves no unhandled error behind (the
+    // browser cannot show it either, after the answer came).
+    driver.script(
+        "window.unhandled = []; \
+         window.addEventListener('unhandledrejection', e => window.unhandled.push(String(e.reason))); return 0;",
+    );
     let bad = std::env::temp_dir().join(format!("udapose-web-bad-{}.png", std::process::id()));
     std::fs::write(&bad, b"not really a png").unwrap();
     driver.session("POST", &format!("/element/{input}/value"), json!({ "text": bad.display().to_string() }));
     let status = wait(&driver, "document.getElementById('status').textContent", |v| v != "estimating…" && v != "done");
     let _ = std::fs::remove_file(&bad);
     assert!(status.as_str().unwrap().contains("400 INVALID_ARGUMENT"), "{status}");
+    thread::sleep(Duration::from_millis(500));
+    let unhandled = driver.script("return window.unhandled");
+    assert_eq!(unhandled, json!([]), "uncaught errors on the page");
 }
 
 /// Polls a script expression until `done` holds (20 s at most); returns its last value.
