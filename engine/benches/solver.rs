@@ -17,7 +17,9 @@ use udapose_engine::solver::{
     AdamConfig, Optimizer, PatternSearchConfig, Problem, Scratch, SolverConfig, multi_pose_init, solve,
 };
 use udapose_engine::{Camera, PoseMetrics, rotation_error};
-use udapose_testkit::synthetic::{ImageSettings, SplitMix64, SyntheticModel, render_features, source_pose};
+use udapose_testkit::synthetic::{
+    ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
+};
 
 const DIM: usize = 128;
 
@@ -110,7 +112,6 @@ fn main() {
     let images: usize = std::env::var("UDAPOSE_SOLVER_IMAGES").ok().and_then(|s| s.parse().ok()).unwrap_or(100);
     let smooth = SyntheticModel::car(DIM, 5.0, &mut SplitMix64::new(1)).unwrap();
     let sharp = SyntheticModel::car(DIM, 10.0, &mut SplitMix64::new(1)).unwrap();
-    let r = smooth.mesh.vertices().len();
     let mut times = Vec::new();
     let mut accuracy = Vec::new();
 
@@ -134,99 +135,161 @@ fn main() {
             let problems: Vec<Problem> = maps.iter().map(|f| Problem::new(&mesh_model, f, &crop, 8).unwrap()).collect();
 
             if si == 0 {
-                let mut bench = |name: String, us: f64| {
-                    println!("{label:<22} {name:<62} {:>10.1} µs", us);
-                    times.push(TimeRow { grid: label.into(), name, median_us: us });
-                };
-                let p = set[0].height * set[0].width;
-                bench(
-                    "S = C·F + clutter map (Problem::new, matrixmultiply, rayon)".into(),
-                    time_us(|i| {
-                        black_box(Problem::new(&mesh_model, &maps[i % maps.len()], &crop, 8).unwrap());
-                    }),
-                );
-                bench(
-                    "S = C·F, plain loop (1 thread)".into(),
-                    time_us(|i| {
-                        black_box(similarity_loop(&model.vertex_features, &set[i % set.len()].features, r, p));
-                    }),
-                );
-                let mut scratch = Scratch::default();
-                bench(
-                    "one loss evaluation (render_faces + gather)".into(),
-                    time_us(|i| {
-                        let k = i % set.len();
-                        black_box(problems[k].loss(&mut scratch, &set[k].pose).unwrap());
-                    }),
-                );
-                bench(
-                    "one loss + analytic gradient".into(),
-                    time_us(|i| {
-                        let k = i % set.len();
-                        black_box(problems[k].loss_and_gradient(&mut scratch, &set[k].pose).unwrap());
-                    }),
-                );
-                let config = SolverConfig::default();
-                bench(
-                    "multi_pose_init (144 poses at fit distance, rayon)".into(),
-                    time_us(|i| {
-                        black_box(multi_pose_init(&problems[i % problems.len()], &config).unwrap());
-                    }),
-                );
+                time_pieces(label, model, &set, &problems, &crop, &mut times);
             }
 
-            for (name, optimizer) in optimizers() {
-                let config = SolverConfig { optimizer, ..SolverConfig::default() };
-                let mut errors = Vec::new();
-                let mut dist = Vec::new();
-                let mut ms = Vec::new();
-                let mut evals = 0usize;
-                let mut gaps = Vec::new();
-                let mut scratch = Scratch::default();
-                for (img, prob) in set.iter().zip(&problems) {
-                    let truth = prob.loss(&mut scratch, &img.pose).unwrap();
-                    let t = Instant::now();
-                    let est = solve(prob, &config).unwrap();
-                    ms.push(t.elapsed().as_secs_f64() * 1e3);
-                    errors.push(rotation_error(&est.pose.rotation(), &img.pose.rotation()));
-                    dist.push((est.pose.distance / img.pose.distance - 1.0).abs());
-                    evals += est.hypotheses.iter().map(|h| h.evaluations).sum::<usize>();
-                    gaps.push(est.hypotheses[0].loss - truth);
-                }
-                let at_or_below_truth = gaps.iter().filter(|&&g| g <= 0.0).count() as f64 / gaps.len() as f64;
-                let metrics = PoseMetrics::from_errors(&errors).unwrap();
-                let row = AccuracyRow {
-                    grid: label.into(),
-                    noise,
-                    frequency,
-                    optimizer: name,
-                    n: errors.len(),
-                    under_5: errors.iter().filter(|&&e| e < 5f64.to_radians()).count() as f64 / errors.len() as f64,
-                    metrics,
-                    worst_deg: errors.iter().copied().fold(0.0, f64::max).to_degrees(),
-                    median_distance_error: median(&mut dist),
-                    evaluations: evals as f64 / set.len() as f64,
-                    median_ms: median(&mut ms),
-                    median_gap: median(&mut gaps),
-                    at_or_below_truth,
-                };
-                println!(
-                    "{label:<22} noise {noise:.1} freq {frequency:>2} {:<62} <5° {:>5.1}%  MedErr {:>5.2}°  worst {:>6.1}°  |Δd| {:.2}%  gap {:+.5} ({:.0}% ≤ truth)  {:>5.0} evals  {:>7.2} ms",
-                    row.optimizer,
-                    100.0 * row.under_5,
-                    row.metrics.med_err_deg,
-                    row.worst_deg,
-                    100.0 * row.median_distance_error,
-                    row.median_gap,
-                    100.0 * row.at_or_below_truth,
-                    row.evaluations,
-                    row.median_ms
-                );
-                accuracy.push(row);
+            for optimizer in optimizers() {
+                accuracy.push(accuracy_row(label, (noise, frequency), optimizer, &set, &problems));
             }
         }
     }
     write_report(images, &times, &accuracy);
+}
+
+/// One optimiser's accuracy and cost on a set of images (printed as it goes).
+fn accuracy_row(
+    label: &str,
+    (noise, frequency): (f64, f64),
+    (name, optimizer): (String, Optimizer),
+    set: &[SyntheticImage],
+    problems: &[Problem],
+) -> AccuracyRow {
+    let config = SolverConfig { optimizer, ..SolverConfig::default() };
+    let mut errors = Vec::new();
+    let mut dist = Vec::new();
+    let mut ms = Vec::new();
+    let mut evals = 0usize;
+    let mut gaps = Vec::new();
+    let mut scratch = Scratch::default();
+    for (img, prob) in set.iter().zip(problems) {
+        let truth = prob.loss(&mut scratch, &img.pose).unwrap();
+        let t = Instant::now();
+        let est = solve(prob, &config).unwrap();
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        errors.push(rotation_error(&est.pose.rotation(), &img.pose.rotation()));
+        dist.push((est.pose.distance / img.pose.distance - 1.0).abs());
+        evals += est.hypotheses.iter().map(|h| h.evaluations).sum::<usize>();
+        gaps.push(est.hypotheses[0].loss - truth);
+    }
+    let at_or_below_truth = gaps.iter().filter(|&&g| g <= 0.0).count() as f64 / gaps.len() as f64;
+    let metrics = PoseMetrics::from_errors(&errors).unwrap();
+    let row = AccuracyRow {
+        grid: label.into(),
+        noise,
+        frequency,
+        optimizer: name,
+        n: errors.len(),
+        under_5: errors.iter().filter(|&&e| e < 5f64.to_radians()).count() as f64 / errors.len() as f64,
+        metrics,
+        worst_deg: errors.iter().copied().fold(0.0, f64::max).to_degrees(),
+        median_distance_error: median(&mut dist),
+        evaluations: evals as f64 / set.len() as f64,
+        median_ms: median(&mut ms),
+        median_gap: median(&mut gaps),
+        at_or_below_truth,
+    };
+    println!(
+        "{label:<22} noise {noise:.1} freq {frequency:>2} {:<62} <5° {:>5.1}%  MedErr {:>5.2}°  worst {:>6.1}°  |Δd| {:.2}%  gap {:+.5} ({:.0}% ≤ truth)  {:>5.0} evals  {:>7.2} ms",
+        row.optimizer,
+        100.0 * row.under_5,
+        row.metrics.med_err_deg,
+        row.worst_deg,
+        100.0 * row.median_distance_error,
+        row.median_gap,
+        100.0 * row.at_or_below_truth,
+        row.evaluations,
+        row.median_ms
+    );
+    row
+}
+
+/// The pieces of one image's solve, timed (printed and recorded in `times`).
+fn time_pieces(
+    label: &str,
+    model: &SyntheticModel,
+    set: &[SyntheticImage],
+    problems: &[Problem],
+    crop: &Camera,
+    times: &mut Vec<TimeRow>,
+) {
+    let mesh_model = model.model().unwrap();
+    let maps: Vec<_> = set.iter().map(|i| i.feature_map().unwrap()).collect();
+    let r = model.mesh.vertices().len();
+    let mut bench = |name: String, us: f64| {
+        println!("{label:<22} {name:<62} {:>10.1} µs", us);
+        times.push(TimeRow { grid: label.into(), name, median_us: us });
+    };
+    let p = set[0].height * set[0].width;
+    bench(
+        "S = C·F + clutter map (Problem::new, matrixmultiply, rayon)".into(),
+        time_us(|i| {
+            black_box(Problem::new(&mesh_model, &maps[i % maps.len()], crop, 8).unwrap());
+        }),
+    );
+    bench(
+        "S = C·F, plain loop (1 thread)".into(),
+        time_us(|i| {
+            black_box(similarity_loop(&model.vertex_features, &set[i % set.len()].features, r, p));
+        }),
+    );
+    let mut scratch = Scratch::default();
+    bench(
+        "one loss evaluation (render_faces + gather)".into(),
+        time_us(|i| {
+            let k = i % set.len();
+            black_box(problems[k].loss(&mut scratch, &set[k].pose).unwrap());
+        }),
+    );
+    bench(
+        "one loss + analytic gradient".into(),
+        time_us(|i| {
+            let k = i % set.len();
+            black_box(problems[k].loss_and_gradient(&mut scratch, &set[k].pose).unwrap());
+        }),
+    );
+    let config = SolverConfig::default();
+    bench(
+        "multi_pose_init (144 poses at fit distance, rayon)".into(),
+        time_us(|i| {
+            black_box(multi_pose_init(&problems[i % problems.len()], &config).unwrap());
+        }),
+    );
+}
+
+/// The ratios measured within this run: GEMM vs plain loop, default solve vs METHOD's.
+fn same_run_ratios(times: &[TimeRow], accuracy: &[AccuracyRow], threads: usize) -> String {
+    let mut ratios = String::new();
+    let time_of = |grid: &str, prefix: &str| times.iter().find(|t| t.grid == grid && t.name.starts_with(prefix));
+    let solve_ms = |grid: &str, noise: f64, frequency: f64, prefix: &str| {
+        accuracy
+            .iter()
+            .find(|a| a.grid == grid && a.noise == noise && a.frequency == frequency && a.optimizer.starts_with(prefix))
+            .map(|a| a.median_ms)
+    };
+    let grids: Vec<&String> = times.iter().map(|t| &t.grid).fold(Vec::new(), |mut v, g| {
+        if !v.contains(&g) {
+            v.push(g);
+        }
+        v
+    });
+    for grid in grids {
+        if let (Some(gemm), Some(plain)) = (time_of(grid, "S = C·F + clutter"), time_of(grid, "S = C·F, plain")) {
+            ratios.push_str(&format!(
+                "- {grid}: the GEMM (with the clutter map, {threads} threads) takes {:.2}× less time than the plain loop on one thread\n",
+                plain.median_us / gemm.median_us
+            ));
+        }
+        if let (Some(default), Some(method)) = (
+            solve_ms(grid, 0.5, 5.0, "Adam, analytic gradient, 150"),
+            solve_ms(grid, 0.5, 5.0, "Adam, analytic gradient, 300"),
+        ) {
+            ratios.push_str(&format!(
+                "- {grid}, noise 0.5: the default solve takes {:.2}× less time than with METHOD's 300 Adam steps\n",
+                method / default
+            ));
+        }
+    }
+    ratios
 }
 
 fn write_report(images: usize, times: &[TimeRow], accuracy: &[AccuracyRow]) {
@@ -282,37 +345,7 @@ fn write_report(images: usize, times: &[TimeRow], accuracy: &[AccuracyRow]) {
             a.median_ms
         ));
     }
-    let mut ratios = String::new();
-    let time_of = |grid: &str, prefix: &str| times.iter().find(|t| t.grid == grid && t.name.starts_with(prefix));
-    let solve_ms = |grid: &str, noise: f64, frequency: f64, prefix: &str| {
-        accuracy
-            .iter()
-            .find(|a| a.grid == grid && a.noise == noise && a.frequency == frequency && a.optimizer.starts_with(prefix))
-            .map(|a| a.median_ms)
-    };
-    let grids: Vec<&String> = times.iter().map(|t| &t.grid).fold(Vec::new(), |mut v, g| {
-        if !v.contains(&g) {
-            v.push(g);
-        }
-        v
-    });
-    for grid in grids {
-        if let (Some(gemm), Some(plain)) = (time_of(grid, "S = C·F + clutter"), time_of(grid, "S = C·F, plain")) {
-            ratios.push_str(&format!(
-                "- {grid}: the GEMM (with the clutter map, {threads} threads) takes {:.2}× less time than the plain loop on one thread\n",
-                plain.median_us / gemm.median_us
-            ));
-        }
-        if let (Some(default), Some(method)) = (
-            solve_ms(grid, 0.5, 5.0, "Adam, analytic gradient, 150"),
-            solve_ms(grid, 0.5, 5.0, "Adam, analytic gradient, 300"),
-        ) {
-            ratios.push_str(&format!(
-                "- {grid}, noise 0.5: the default solve takes {:.2}× less time than with METHOD's 300 Adam steps\n",
-                method / default
-            ));
-        }
-    }
+    let ratios = same_run_ratios(times, accuracy, threads);
     md.push_str(&format!(
         "\nSame-run ratios:\n\n{ratios}\nThe default optimiser (Adam, 150 steps on the analytic gradient) is chosen from these rows; \
          the reasoning is on `Optimizer::default` in `engine/src/solver/optimise.rs`.\n"

@@ -378,7 +378,17 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
     if !finite(active) || !finite(candidate) {
         return Err(EngineError::InvalidInput("non-finite azimuth, score or margin in the gate's checks".into()));
     }
+    let criteria = vec![
+        flip_criterion(active, candidate, config),
+        margin_criterion(active, candidate, config),
+        diversity_criterion(active, candidate, config),
+    ];
+    Ok(Decision { passed: criteria.iter().all(|c| c.passed), criteria })
+}
 
+/// Flip consistency may fall by at most `flip_se` paired standard errors.
+fn flip_criterion(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Criterion {
+    let n = active.images.len();
     // Flip consistency: paired difference d_i = c_i − a_i of the 0/1 outcomes.
     let (fa, fc) = (active.flip_rate(), candidate.flip_rate());
     let d: Vec<f64> = active
@@ -394,7 +404,7 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
         0.0
     };
     let flip_threshold = fa - config.flip_se * se;
-    let flip = Criterion {
+    Criterion {
         name: "flip_consistency".into(),
         active: fa,
         candidate: fc,
@@ -406,11 +416,14 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
             FLIP_TOLERANCE.to_degrees(),
             config.flip_se
         ),
-    };
+    }
+}
 
+/// The median score margin must rise by `margin_gain`.
+fn margin_criterion(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Criterion {
     let (ma, mc) = (active.median_margin(), candidate.median_margin());
     let margin_threshold = ma + config.margin_gain;
-    let margin = Criterion {
+    Criterion {
         name: "score_margin".into(),
         active: ma,
         candidate: mc,
@@ -422,11 +435,14 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
             MARGIN_SEPARATION.to_degrees(),
             config.margin_gain
         ),
-    };
+    }
+}
 
+/// The azimuth entropy may fall by `entropy_drop`, or to `entropy_floor`.
+fn diversity_criterion(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Criterion {
     let (ha, hc) = (active.azimuth_entropy(), candidate.azimuth_entropy());
     let entropy_threshold = (ha - config.entropy_drop).min(config.entropy_floor);
-    let diversity = Criterion {
+    Criterion {
         name: "pose_diversity".into(),
         active: ha,
         candidate: hc,
@@ -439,10 +455,7 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
             config.entropy_drop,
             config.entropy_floor
         ),
-    };
-
-    let criteria = vec![flip, margin, diversity];
-    Ok(Decision { passed: criteria.iter().all(|c| c.passed), criteria })
+    }
 }
 
 /// Whether an image is in the held-out bucket (about 20%), by the sha256 of its encoded bytes:

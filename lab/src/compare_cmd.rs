@@ -240,7 +240,15 @@ fn markdown(report: &Value, args: &Args) -> String {
             .unwrap_or_default();
         format!("{:.3} (n = {})", mean(&shifted), shifted.len())
     });
-    md += "\n## Acc@π/6 per domain (test splits)\n\n";
+    md + &domain_table(&models, &names)
+}
+
+/// Acc@π/6 per domain (rows) and model (columns), with intervals.
+fn domain_table(models: &serde_json::Map<String, Value>, names: &[&String]) -> String {
+    let row = |label: &str, f: &dyn Fn(&Value) -> String| {
+        format!("| {label} | {} |\n", names.iter().map(|n| f(&models[*n])).collect::<Vec<_>>().join(" | "))
+    };
+    let mut md = String::from("\n## Acc@π/6 per domain (test splits)\n\n");
     md += &format!(
         "| domain | {} |\n|---|{}\n",
         names.iter().map(|n| format!("`{n}`")).collect::<Vec<_>>().join(" | "),

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{AdaptConfig, fired_ratio};
+use udapose_engine::adapt::{AdaptConfig, Threshold, fired_ratio};
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
@@ -40,10 +40,8 @@ pub struct Args {
 pub fn run(args: &Args) -> Result<()> {
     let device = RuntimeInfo::detect().device();
     let model = checkpoint::load(&args.model, device).with_context(|| format!("loading {}", args.model.display()))?;
-    let [h, w] = model.manifest.crop;
     let estimator = Estimator::new(model, SolverConfig::default())?;
-    let (model, solver) = (&estimator.model, estimator.solver());
-    let config = &solver.config;
+    let (model, config) = (&estimator.model, &estimator.solver().config);
     // The fired-vertex diagnostic uses the adaptation's firing test.
     let threshold = AdaptConfig::default().threshold;
     let names: Vec<String> =
@@ -63,52 +61,9 @@ pub fn run(args: &Args) -> Result<()> {
         crate::synth_cmd::git_commit()
     );
     for name in &names {
-        let split = SyncarSplit::open(&args.data, name, &args.split)?;
-        let n = if args.limit == 0 { split.len() } else { args.limit.min(split.len()) };
-        let (mut errors, mut azimuths, mut fired) =
-            (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-        for i in 0..n {
-            let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
-            if (ih, iw) != (h, w) {
-                bail!("{name}: images are {iw}x{ih}, the model's crop is {w}x{h}");
-            }
-            let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
-            let features = estimator.batch_features(&image)?;
-            let estimate = solver.solve(&features[0]);
-            let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
-            errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
-            azimuths.push(pose.azimuth.to_degrees());
-            let stride = config.stride;
-            fired.push(fired_ratio(&model.neural_mesh, &features[0], solver.camera(), stride, &pose, threshold)?);
-        }
-        let m = PoseMetrics::from_errors(&errors)?;
-        let ci = MetricIntervals::bootstrap(&errors, 1000, 0)?;
-        eprintln!(
-            "{name}: Acc@π/6 {:.3}, Acc@π/18 {:.3}, MedErr {:.1}° (n = {})",
-            m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n
-        );
-        md.push_str(&format!(
-            "| {name} | {:.3} [{:.3}, {:.3}] | {:.3} [{:.3}, {:.3}] | {:.1} [{:.1}, {:.1}] | {} |\n",
-            m.acc_pi_6,
-            ci.acc_pi_6_ci[0],
-            ci.acc_pi_6_ci[1],
-            m.acc_pi_18,
-            ci.acc_pi_18_ci[0],
-            ci.acc_pi_18_ci[1],
-            m.med_err_deg,
-            ci.med_err_deg_ci[0],
-            ci.med_err_deg_ci[1],
-            m.n
-        ));
-        let mut entry = serde_json::to_value(m)?;
-        if let (Some(entry), serde_json::Value::Object(ci)) = (entry.as_object_mut(), serde_json::to_value(ci)?) {
-            entry.extend(ci);
-            // Per image, in list order: for paired comparisons and the report's histograms.
-            let degrees: Vec<f64> = errors.iter().map(|e| e.to_degrees()).collect();
-            entry.insert("errors_deg".into(), json!(degrees));
-            entry.insert("azimuths_deg".into(), json!(azimuths));
-            entry.insert("fired_ratios".into(), json!(fired));
-        }
+        let errors = domain_errors(&estimator, args, name, threshold)?;
+        let (entry, row) = domain_entry(name, errors)?;
+        md.push_str(&row);
         domains.insert(name.clone(), entry);
     }
     let profile = std::fs::read_to_string(args.data.join("manifest.json"))
@@ -129,6 +84,74 @@ pub fn run(args: &Args) -> Result<()> {
     udapose_lab::atomic::write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
     udapose_lab::atomic::write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     Ok(())
+}
+
+/// One domain's per-image results, in list order.
+struct DomainErrors {
+    errors: Vec<f64>,
+    azimuths_deg: Vec<f64>,
+    fired: Vec<f64>,
+}
+
+/// Estimates every image of `name`'s split (at most `--limit`).
+fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Threshold) -> Result<DomainErrors> {
+    let [h, w] = estimator.model.manifest.crop;
+    let solver = estimator.solver();
+    let split = SyncarSplit::open(&args.data, name, &args.split)?;
+    let n = if args.limit == 0 { split.len() } else { args.limit.min(split.len()) };
+    let mut out = DomainErrors {
+        errors: Vec::with_capacity(n),
+        azimuths_deg: Vec::with_capacity(n),
+        fired: Vec::with_capacity(n),
+    };
+    for i in 0..n {
+        let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
+        if (ih, iw) != (h, w) {
+            bail!("{name}: images are {iw}x{ih}, the model's crop is {w}x{h}");
+        }
+        let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+        let features = estimator.batch_features(&image)?;
+        let estimate = solver.solve(&features[0]);
+        let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
+        out.errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
+        out.azimuths_deg.push(pose.azimuth.to_degrees());
+        let (mesh, stride) = (&estimator.model.neural_mesh, solver.config.stride);
+        out.fired.push(fired_ratio(mesh, &features[0], solver.camera(), stride, &pose, threshold)?);
+    }
+    Ok(out)
+}
+
+/// A domain's report entry (metrics, intervals, per-image arrays) and its Markdown row.
+fn domain_entry(name: &str, d: DomainErrors) -> Result<(serde_json::Value, String)> {
+    let m = PoseMetrics::from_errors(&d.errors)?;
+    let ci = MetricIntervals::bootstrap(&d.errors, 1000, 0)?;
+    eprintln!(
+        "{name}: Acc@π/6 {:.3}, Acc@π/18 {:.3}, MedErr {:.1}° (n = {})",
+        m.acc_pi_6, m.acc_pi_18, m.med_err_deg, m.n
+    );
+    let row = format!(
+        "| {name} | {:.3} [{:.3}, {:.3}] | {:.3} [{:.3}, {:.3}] | {:.1} [{:.1}, {:.1}] | {} |\n",
+        m.acc_pi_6,
+        ci.acc_pi_6_ci[0],
+        ci.acc_pi_6_ci[1],
+        m.acc_pi_18,
+        ci.acc_pi_18_ci[0],
+        ci.acc_pi_18_ci[1],
+        m.med_err_deg,
+        ci.med_err_deg_ci[0],
+        ci.med_err_deg_ci[1],
+        m.n
+    );
+    let mut entry = serde_json::to_value(m)?;
+    if let (Some(entry), serde_json::Value::Object(ci)) = (entry.as_object_mut(), serde_json::to_value(ci)?) {
+        entry.extend(ci);
+        // Per image, in list order: for paired comparisons and the report's histograms.
+        let degrees: Vec<f64> = d.errors.iter().map(|e| e.to_degrees()).collect();
+        entry.insert("errors_deg".into(), json!(degrees));
+        entry.insert("azimuths_deg".into(), json!(d.azimuths_deg));
+        entry.insert("fired_ratios".into(), json!(d.fired));
+    }
+    Ok((entry, row))
 }
 
 /// Every domain under `root` with a `split` directory, one or two levels deep (`fog`,

@@ -235,9 +235,9 @@ impl Report<'_> {
         Some(report["domains"][domain].clone())
     }
 
-    fn write(&self, domains: &[String]) -> Result<()> {
-        let mut out = serde_json::Map::new();
-        let mut md = format!(
+    /// The Markdown report's title, explanation and table header.
+    fn table_header(&self) -> String {
+        format!(
             "# SynCar-OOD: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}` (stages cached in `{}`), \
              commit `{}`, {}. Source model `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples \
              of the test images); gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, \
@@ -254,58 +254,70 @@ impl Report<'_> {
             crate::synth_cmd::git_commit(),
             crate::eval_cmd::machine(),
             self.source.display(),
+        )
+    }
+
+    /// One domain's report entry and its Markdown row.
+    fn domain(&self, domain: &str) -> (Value, String) {
+        let get = |v| self.evaluation(v, domain);
+        let (s, b, a, o, g) = (
+            get(Variant::Source),
+            get(Variant::BatchnormOnly),
+            get(Variant::Adapted),
+            get(Variant::Oracle),
+            get(Variant::Global),
         );
+        let gap = match (&s, &a, &o) {
+            (Some(s), Some(a), Some(o)) => gap_closed(s, a, o),
+            _ => (None, None),
+        };
+        // What the EM adds to AdaBN, and what the whole adaptation adds to the source.
+        let (em, adapt) = (gain(&b, &a), gain(&s, &a));
+        let seconds = |what: &str| self.timings.get(&format!("{what} {domain}")).copied();
+        let mut entry = json!({
+            "source": metrics(&s), "batchnorm_only": metrics(&b), "adapted": metrics(&a), "oracle": metrics(&o), "global_filter": metrics(&g),
+            "gap_closed": gap.0, "gap_closed_ci": gap.1,
+            "em_gain": em.0, "em_gain_ci": em.1, "adapt_gain": adapt.0, "adapt_gain_ci": adapt.1,
+            "adapt_seconds": seconds("adapt"), "oracle_seconds": seconds("oracle"), "global_seconds": seconds("global"),
+        });
+        let fired = |e: &Option<Value>| e.as_ref().and_then(|e| mean_of(&e["fired_ratios"]));
+        entry["fired_ratio"] = json!({"source": fired(&s), "adapted": fired(&a)});
+        let cell = |e: &Option<Value>| {
+            e.as_ref().map_or("—".to_string(), |e| {
+                format!("{:.3} [{:.3}, {:.3}]", f(&e["acc_pi_6"]), f(&e["acc_pi_6_ci"][0]), f(&e["acc_pi_6_ci"][1]))
+            })
+        };
+        let gap_cell = match gap {
+            (Some(x), Some([lo, hi])) => format!("{x:.2} [{lo:.2}, {hi:.2}]"),
+            (Some(x), None) => format!("{x:.2}"),
+            _ if s.is_some() && o.is_some() => "n/a".into(),
+            _ => "—".into(),
+        };
+        let em_cell = match em {
+            (Some(x), Some([lo, hi])) => format!("{x:+.3} [{lo:+.3}, {hi:+.3}]"),
+            _ => "—".into(),
+        };
+        let med = |e: &Option<Value>| e.as_ref().map_or("—".into(), |e| format!("{:.1}", f(&e["med_err_deg"])));
+        let row = format!(
+            "| {domain} | {} | {} | {} | {} | {} | {gap_cell} | {em_cell} | {} → {} | {} |\n",
+            cell(&s),
+            cell(&b),
+            cell(&a),
+            cell(&o),
+            cell(&g),
+            med(&s),
+            med(&a),
+            seconds("adapt").map_or("—".into(), |x| format!("{x:.0}")),
+        );
+        (entry, row)
+    }
+
+    fn write(&self, domains: &[String]) -> Result<()> {
+        let mut out = serde_json::Map::new();
+        let mut md = self.table_header();
         for domain in domains {
-            let get = |v| self.evaluation(v, domain);
-            let (s, b, a, o, g) = (
-                get(Variant::Source),
-                get(Variant::BatchnormOnly),
-                get(Variant::Adapted),
-                get(Variant::Oracle),
-                get(Variant::Global),
-            );
-            let gap = match (&s, &a, &o) {
-                (Some(s), Some(a), Some(o)) => gap_closed(s, a, o),
-                _ => (None, None),
-            };
-            // What the EM adds to AdaBN, and what the whole adaptation adds to the source.
-            let (em, adapt) = (gain(&b, &a), gain(&s, &a));
-            let seconds = |what: &str| self.timings.get(&format!("{what} {domain}")).copied();
-            let mut entry = json!({
-                "source": metrics(&s), "batchnorm_only": metrics(&b), "adapted": metrics(&a), "oracle": metrics(&o), "global_filter": metrics(&g),
-                "gap_closed": gap.0, "gap_closed_ci": gap.1,
-                "em_gain": em.0, "em_gain_ci": em.1, "adapt_gain": adapt.0, "adapt_gain_ci": adapt.1,
-                "adapt_seconds": seconds("adapt"), "oracle_seconds": seconds("oracle"), "global_seconds": seconds("global"),
-            });
-            let fired = |e: &Option<Value>| e.as_ref().and_then(|e| mean_of(&e["fired_ratios"]));
-            entry["fired_ratio"] = json!({"source": fired(&s), "adapted": fired(&a)});
-            let cell = |e: &Option<Value>| {
-                e.as_ref().map_or("—".to_string(), |e| {
-                    format!("{:.3} [{:.3}, {:.3}]", f(&e["acc_pi_6"]), f(&e["acc_pi_6_ci"][0]), f(&e["acc_pi_6_ci"][1]))
-                })
-            };
-            let gap_cell = match gap {
-                (Some(x), Some([lo, hi])) => format!("{x:.2} [{lo:.2}, {hi:.2}]"),
-                (Some(x), None) => format!("{x:.2}"),
-                _ if s.is_some() && o.is_some() => "n/a".into(),
-                _ => "—".into(),
-            };
-            let em_cell = match em {
-                (Some(x), Some([lo, hi])) => format!("{x:+.3} [{lo:+.3}, {hi:+.3}]"),
-                _ => "—".into(),
-            };
-            let med = |e: &Option<Value>| e.as_ref().map_or("—".into(), |e| format!("{:.1}", f(&e["med_err_deg"])));
-            md.push_str(&format!(
-                "| {domain} | {} | {} | {} | {} | {} | {gap_cell} | {em_cell} | {} → {} | {} |\n",
-                cell(&s),
-                cell(&b),
-                cell(&a),
-                cell(&o),
-                cell(&g),
-                med(&s),
-                med(&a),
-                seconds("adapt").map_or("—".into(), |x| format!("{x:.0}")),
-            ));
+            let (entry, row) = self.domain(domain);
+            md.push_str(&row);
             out.insert(domain.clone(), entry);
         }
         md.push_str(&self.acceptance(&out));

@@ -111,24 +111,13 @@ pub fn run(args: &Args) -> Result<()> {
     if args.out.exists() {
         bail!("{} already exists (model versions are immutable)", args.out.display());
     }
-    let data: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(args.data.join("manifest.json")).context("reading the dataset's manifest.json")?,
-    )?;
-    let cuboid: Cuboid = serde_json::from_value(data["cuboid"].clone()).context("dataset manifest: cuboid")?;
-    let crop =
-        [data["crop"]["height"].as_u64().unwrap_or(0) as usize, data["crop"]["width"].as_u64().unwrap_or(0) as usize];
-    let camera = Camera::for_crop(crop[0], crop[1])?;
+    let dataset = Dataset::open(&args.data)?;
+    let camera = Camera::for_crop(dataset.crop[0], dataset.crop[1])?;
     let device = RuntimeInfo::detect().device();
-    let mesh = cuboid.mesh(TARGET_VERTICES);
+    let mesh = dataset.cuboid.mesh(TARGET_VERTICES);
 
     let mut vs = nn::VarStore::new(device);
-    let mut backbone = Backbone::new(vs.root(), args.arch, 128);
-    if let Some(init) = &args.init_backbone {
-        let loaded = backbone.load_trunk(&mut vs, init)?;
-        eprintln!("initialised the trunk from {} ({} tensors)", init.display(), loaded.loaded);
-    }
-    let freeze_stages = freeze_stages(args);
-    let frozen = backbone.freeze_stages(freeze_stages)?;
+    let (backbone, freeze_stages, frozen_blocks) = build_backbone(args, &mut vs)?;
     let mut training = SourceTraining::new(TrainConfig::default(), mesh.clone(), camera, 128, device);
     let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("{}.work", args.out.display())));
     std::fs::create_dir_all(&work)?;
@@ -143,8 +132,13 @@ pub fn run(args: &Args) -> Result<()> {
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ progress.epoch as u64);
     // tch cannot save an optimiser's state: a resumed run starts Adam afresh.
     let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&vs, args.lr)?;
-    let trunk_lr = trunk_lr(args);
-    let augment = (!args.no_augment).then(Photometric::default);
+    let recipe = Recipe {
+        trunk_lr: trunk_lr(args),
+        augment: (!args.no_augment).then(Photometric::default),
+        freeze_stages,
+        frozen_blocks,
+    };
+    let (trunk_lr, augment) = (recipe.trunk_lr, &recipe.augment);
     let steps_per_epoch = loader.len().div_ceil(args.batch);
     let total_steps = steps_per_epoch * args.epochs;
     for epoch in progress.epoch..args.epochs {
@@ -157,7 +151,7 @@ pub fn run(args: &Args) -> Result<()> {
             opt.set_lr_group(TRUNK_GROUP, trunk_lr * f);
             opt.set_lr_group(DECODER_GROUP, args.lr * f);
             let mut images = images_tensor(&batch, device);
-            if let Some(augment) = &augment {
+            if let Some(augment) = augment {
                 images = augment.apply(&images, &mut rng);
             }
             let features = backbone.forward_t(&udapose_engine::backbone::preprocess(&images)?, true);
@@ -177,28 +171,69 @@ pub fn run(args: &Args) -> Result<()> {
         save_state(&work, &vs, &training, &progress)?;
     }
     let (tau, r_bar) = statistics(&backbone, &training, &train, args.batch)?;
+    let vertices = mesh.vertices().len() as i64;
     let neural_mesh = NeuralMesh {
         mesh,
         vertex_features: training.vertex_features.shallow_clone(),
         clutter: clutter_mean(&training.clutter),
-        kappa: Tensor::full(
-            [cuboid.mesh(TARGET_VERTICES).vertices().len() as i64],
-            1.0 / training.config.temperature,
-            (Kind::Float, device),
-        ),
+        kappa: Tensor::full([vertices], 1.0 / training.config.temperature, (Kind::Float, device)),
         tau,
         r_bar,
     };
-    let manifest = Manifest {
+    let manifest = manifest(args, dataset, neural_mesh.mesh.vertices().len(), &recipe, &progress, device);
+    checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
+    eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
+    Ok(())
+}
+
+/// The dataset's manifest and what training takes from it.
+struct Dataset {
+    manifest: serde_json::Value,
+    cuboid: Cuboid,
+    /// `[height, width]`.
+    crop: [usize; 2],
+}
+
+impl Dataset {
+    fn open(root: &std::path::Path) -> Result<Dataset> {
+        let text =
+            std::fs::read_to_string(root.join("manifest.json")).context("reading the dataset's manifest.json")?;
+        let manifest: serde_json::Value = serde_json::from_str(&text)?;
+        let cuboid: Cuboid = serde_json::from_value(manifest["cuboid"].clone()).context("dataset manifest: cuboid")?;
+        let side = |k: &str| manifest["crop"][k].as_u64().unwrap_or(0) as usize;
+        let crop = [side("height"), side("width")];
+        Ok(Dataset { manifest, cuboid, crop })
+    }
+}
+
+/// The recipe's derived settings, recorded in the model's manifest.
+struct Recipe {
+    trunk_lr: f64,
+    augment: Option<Photometric>,
+    freeze_stages: usize,
+    frozen_blocks: usize,
+}
+
+/// The trained model's manifest: what it is, and how it was trained (reproducibly).
+fn manifest(
+    args: &Args,
+    dataset: Dataset,
+    vertices: usize,
+    recipe: &Recipe,
+    progress: &Progress,
+    device: tch::Device,
+) -> Manifest {
+    let data = &dataset.manifest;
+    Manifest {
         format_version: checkpoint::FORMAT_VERSION,
         category: args.category.clone(),
         version: format!("source-{}", crate::synth_cmd::git_commit()),
-        vertices: neural_mesh.mesh.vertices().len(),
-        cuboid,
+        vertices,
+        cuboid: dataset.cuboid,
         backbone: args.arch,
         input_normalization: Some(args.arch.input_normalization().into()),
         feature_dim: 128,
-        crop,
+        crop: dataset.crop,
         clutter: 1,
         dtype: args.dtype.clone(),
         training: json!({
@@ -206,8 +241,8 @@ pub fn run(args: &Args) -> Result<()> {
             "data": {"profile": data["profile"], "seed": data["seed"], "commit": data["commit"]},
             "commit": crate::synth_cmd::git_commit(),
             "epochs": args.epochs, "batch": args.batch, "lr": args.lr, "seed": args.seed,
-            "trunk_lr": trunk_lr, "schedule": args.schedule, "warmup_steps": args.warmup_steps,
-            "augment": augment, "freeze_stages": freeze_stages, "frozen_blocks": frozen,
+            "trunk_lr": recipe.trunk_lr, "schedule": args.schedule, "warmup_steps": args.warmup_steps,
+            "augment": recipe.augment, "freeze_stages": recipe.freeze_stages, "frozen_blocks": recipe.frozen_blocks,
             "init_backbone": args.init_backbone.as_ref().map(|p| p.display().to_string()),
             "train_seconds": progress.seconds,
             "validation_curve": progress.curve,
@@ -215,10 +250,20 @@ pub fn run(args: &Args) -> Result<()> {
         }),
         metrics: serde_json::Value::Null,
         files: Default::default(),
-    };
-    checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
-    eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
-    Ok(())
+    }
+}
+
+/// The backbone, its trunk initialised from `--init-backbone`, its first stages frozen; with
+/// the number of stages and of blocks frozen.
+fn build_backbone(args: &Args, vs: &mut nn::VarStore) -> Result<(Backbone, usize, usize)> {
+    let mut backbone = Backbone::new(vs.root(), args.arch, 128);
+    if let Some(init) = &args.init_backbone {
+        let loaded = backbone.load_trunk(vs, init)?;
+        eprintln!("initialised the trunk from {} ({} tensors)", init.display(), loaded.loaded);
+    }
+    let stages = freeze_stages(args);
+    let frozen = backbone.freeze_stages(stages)?;
+    Ok((backbone, stages, frozen))
 }
 
 fn freeze_stages(args: &Args) -> usize {

@@ -155,16 +155,7 @@ enum GatePolicy {
 async fn main() -> Result<()> {
     init_tracing();
     let args = Args::parse();
-    let tokens = Tokens::new(args.token.as_deref(), args.token_file.as_deref())?;
-    if !tokens.enabled() && !args.allow_unauthenticated {
-        for addr in [args.http_addr, args.grpc_addr] {
-            if !addr.ip().is_loopback() {
-                bail!(
-                    "{addr} is not loopback and no token is configured: set --token/--token-file, or pass --allow-unauthenticated"
-                );
-            }
-        }
-    }
+    let tokens = tokens(&args)?;
     if args.torch_threads > 0 {
         tch::set_num_threads(args.torch_threads);
     }
@@ -178,57 +169,16 @@ async fn main() -> Result<()> {
         queue_depth: args.queue_depth as usize,
         device: runtime.device(),
     };
-    let s3 = S3Options {
-        endpoint: args.s3_endpoint.clone(),
-        region: args.s3_region.clone(),
-        allow_http: args.s3_allow_http,
-    };
-    let cache = args.cache_dir.clone().unwrap_or_else(std::env::temp_dir);
-    let store =
-        Store::open_url(&args.store, &s3, &cache).with_context(|| format!("opening the store {}", args.store))?;
-    match store.probe() {
-        Ok(()) => {
-            tracing::info!(store = %store, role = ?args.role, "store refuses a second create-only write: writers are fenced")
-        }
-        Err(e) if args.role == Role::Serve => {
-            tracing::warn!("{e}; serving anyway (a serve replica never activates on its own)")
-        }
-        Err(e) => bail!(
-            "{e}: refusing --role {}, whose jobs and activations rely on it",
-            format!("{:?}", args.role).to_lowercase()
-        ),
-    }
+    let store = open_store(&args)?;
     let registry = Arc::new(Registry::start(store.clone(), &args.models, &config, metrics.clone())?);
     let poll = Duration::from_secs(args.poll);
     if args.poll > 0 {
         registry.poll(poll);
     }
-    let limits = Limits {
-        max_request_bytes: usize::try_from(args.max_request_bytes).context("--max-request-bytes")?,
-        decode: DecodeLimits {
-            max_side: args.max_image_side,
-            in_flight: args.max_decoded_mib << 20,
-            ..DecodeLimits::default()
-        },
-        default_timeout: Duration::from_millis(args.timeout_ms),
-    };
-    let jobs = Jobs::start(
-        store.clone(),
-        registry.clone(),
-        Buffer::new(store.clone(), args.buffer_capacity as usize),
-        JobsConfig {
-            min_images: args.adapt_min_images as usize,
-            adapt: AdaptConfig::default(),
-            gate: GateConfig::default(),
-            device: runtime.device(),
-            decode: limits.decode,
-            runs_jobs: args.role != Role::Serve,
-            enforce_gate: args.gate == GatePolicy::Enforce,
-            poll,
-            threads: if args.job_threads == 0 { (runtime.cpus / 2).max(1) } else { args.job_threads },
-        },
-    )
-    .context("starting the adaptation jobs")?;
+    let limits = limits(&args)?;
+    let buffer = Buffer::new(store.clone(), args.buffer_capacity as usize);
+    let jobs = Jobs::start(store.clone(), registry.clone(), buffer, jobs_config(&args, &runtime, &limits, poll))
+        .context("starting the adaptation jobs")?;
     let service = Arc::new(Service::new(registry, limits, metrics, tokens, jobs));
 
     // Bind both before serving either, so a bad address fails fast and both listen once the
@@ -260,6 +210,77 @@ async fn main() -> Result<()> {
     )?;
     tracing::info!("stopped");
     Ok(())
+}
+
+/// The tokens; without any, only loopback addresses (unless `--allow-unauthenticated`).
+fn tokens(args: &Args) -> Result<Tokens> {
+    let tokens = Tokens::new(args.token.as_deref(), args.token_file.as_deref())?;
+    if !tokens.enabled() && !args.allow_unauthenticated {
+        for addr in [args.http_addr, args.grpc_addr] {
+            if !addr.ip().is_loopback() {
+                bail!(
+                    "{addr} is not loopback and no token is configured: set --token/--token-file, or pass --allow-unauthenticated"
+                );
+            }
+        }
+    }
+    Ok(tokens)
+}
+
+/// The store, probed: one that does not fence create-only writes may only serve.
+fn open_store(args: &Args) -> Result<Store> {
+    let s3 = S3Options {
+        endpoint: args.s3_endpoint.clone(),
+        region: args.s3_region.clone(),
+        allow_http: args.s3_allow_http,
+    };
+    let cache = args.cache_dir.clone().unwrap_or_else(std::env::temp_dir);
+    let store =
+        Store::open_url(&args.store, &s3, &cache).with_context(|| format!("opening the store {}", args.store))?;
+    match store.probe() {
+        Ok(()) => {
+            tracing::info!(store = %store, role = ?args.role, "store refuses a second create-only write: writers are fenced")
+        }
+        Err(e) if args.role == Role::Serve => {
+            tracing::warn!("{e}; serving anyway (a serve replica never activates on its own)")
+        }
+        Err(e) => bail!(
+            "{e}: refusing --role {}, whose jobs and activations rely on it",
+            format!("{:?}", args.role).to_lowercase()
+        ),
+    }
+    Ok(store)
+}
+
+fn limits(args: &Args) -> Result<Limits> {
+    Ok(Limits {
+        max_request_bytes: usize::try_from(args.max_request_bytes).context("--max-request-bytes")?,
+        decode: DecodeLimits {
+            max_side: args.max_image_side,
+            in_flight: args.max_decoded_mib << 20,
+            ..DecodeLimits::default()
+        },
+        default_timeout: Duration::from_millis(args.timeout_ms),
+    })
+}
+
+fn jobs_config(
+    args: &Args,
+    runtime: &udapose_engine::runtime::RuntimeInfo,
+    limits: &Limits,
+    poll: Duration,
+) -> JobsConfig {
+    JobsConfig {
+        min_images: args.adapt_min_images as usize,
+        adapt: AdaptConfig::default(),
+        gate: GateConfig::default(),
+        device: runtime.device(),
+        decode: limits.decode,
+        runs_jobs: args.role != Role::Serve,
+        enforce_gate: args.gate == GatePolicy::Enforce,
+        poll,
+        threads: if args.job_threads == 0 { (runtime.cpus / 2).max(1) } else { args.job_threads },
+    }
 }
 
 /// Logs to stdout; `RUST_LOG` overrides the default `info` level. Colours only on a terminal, so

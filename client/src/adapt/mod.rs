@@ -187,7 +187,7 @@ impl Client {
 async fn upload(
     client: &Client,
     category: &str,
-    mut images: Pin<Box<dyn Stream<Item = (String, Vec<u8>)> + Send>>,
+    mut images: Images,
     out: &mpsc::Sender<Result<Upload, Error>>,
 ) -> Result<(), Error> {
     let mut ledger = Ledger::new(client.buffer_full_retries, client.buffer_full_backoff);
@@ -200,50 +200,28 @@ async fn upload(
             if input_done {
                 return Ok(());
             }
-            tokio::select! {
-                biased;
-                () = out.closed() => return Ok(()),
-                image = images.next() => match image {
-                    Some((name, bytes)) => ledger.admit(name, bytes),
-                    None => {
-                        input_done = true;
-                        continue;
-                    }
-                },
+            match next_image(&mut images, out).await {
+                None => return Ok(()),
+                Some(Some((name, bytes))) => ledger.admit(name, bytes),
+                Some(None) => {
+                    input_done = true;
+                    continue;
+                }
             }
         }
         let (tx, rx) = mpsc::channel::<TargetImage>(WINDOW);
-        let (endpoint, opened) = async {
-            if let Some(pause) = ledger.pause() {
-                tokio::time::sleep(pause).await;
-                ledger.release_waiting();
-            }
-            while ledger.window_open() {
-                let Some(image) = ledger.send_next(category) else { break };
-                let _ = tx.send(image).await; // never blocks: the channel holds a window
-            }
-            let (endpoint, channel) = client.pool.pick();
-            let targets = client.request(ReceiverStream::new(rx));
-            (endpoint, AdaptationServiceClient::new(channel).stream_targets(targets).await)
-        }
-        .await;
+        // Never blocks: the channel holds a window.
+        fill_window(&mut ledger, category, &tx).await;
+        let (endpoint, channel) = client.pool.pick();
+        let targets = client.request(ReceiverStream::new(rx));
+        let opened = AdaptationServiceClient::new(channel).stream_targets(targets).await;
         let broken = match opened {
             Err(status) => status,
             Ok(response) => {
                 client.pool.answered(endpoint);
                 let mut acks = response.into_inner();
                 loop {
-                    if let Some(pause) = ledger.pause() {
-                        tokio::time::sleep(pause).await;
-                        ledger.release_waiting();
-                    }
-                    while ledger.window_open() {
-                        let Some(image) = ledger.send_next(category) else { break };
-                        // An error means the call is over; reading the acks says why.
-                        if tx.send(image).await.is_err() {
-                            break;
-                        }
-                    }
+                    fill_window(&mut ledger, category, &tx).await;
                     let want_input = !input_done && ledger.window_open() && !ledger.has_to_send();
                     if !ledger.has_in_flight() && !want_input {
                         if input_done && ledger.is_idle() {
@@ -284,6 +262,36 @@ async fn upload(
         };
         ledger.broken();
         client.again(&mut tries, endpoint, broken).await?;
+    }
+}
+
+/// The caller's images, named, as [`Client::stream_targets`] takes them.
+type Images = Pin<Box<dyn Stream<Item = (String, Vec<u8>)> + Send>>;
+
+/// Waits out the ledger's pause, then queues on `tx` what the window allows.
+async fn fill_window(ledger: &mut Ledger, category: &str, tx: &mpsc::Sender<TargetImage>) {
+    if let Some(pause) = ledger.pause() {
+        tokio::time::sleep(pause).await;
+        ledger.release_waiting();
+    }
+    while ledger.window_open() {
+        let Some(image) = ledger.send_next(category) else { break };
+        // An error means the call is over; reading the acks says why.
+        if tx.send(image).await.is_err() {
+            break;
+        }
+    }
+}
+
+/// The caller's next image (`Some(None)`: its input ended), or `None` when it went away.
+async fn next_image(
+    images: &mut Images,
+    out: &mpsc::Sender<Result<Upload, Error>>,
+) -> Option<Option<(String, Vec<u8>)>> {
+    tokio::select! {
+        biased;
+        () = out.closed() => None,
+        image = images.next() => Some(image),
     }
 }
 
