@@ -32,6 +32,9 @@ fn server_without_models_is_live_but_not_ready() {
         let status = server.terminate();
         assert!(status.success(), "unclean exit on SIGTERM: {status}\n{}", server.log());
     }
+    // The log goes to a file here: plain text, no terminal colour codes.
+    let log = server.log();
+    assert!(log.contains("INFO") && !log.contains('\u{1b}'), "colour codes in a log file:\n{log}");
 }
 
 async fn check_grpc(endpoint: &str) {
