@@ -155,7 +155,12 @@ pub(crate) fn request(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{extra}Content-Length: {}\r\n\r\n",
         body.len()
     )?;
-    stream.write_all(body)?;
+    // A server may answer (413) and close before it has read a large body: its answer still counts.
+    if let Err(e) = stream.write_all(body)
+        && !matches!(e.kind(), std::io::ErrorKind::BrokenPipe | std::io::ErrorKind::ConnectionReset)
+    {
+        return Err(e);
+    }
     let mut response = String::new();
     stream.read_to_string(&mut response)?;
     let status = response.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
