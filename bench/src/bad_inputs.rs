@@ -7,14 +7,13 @@
 use std::{
     io::Cursor,
     path::{Path, PathBuf},
-    process::Command,
 };
 
 use anyhow::{Context, Result, ensure};
 use udapose_client::{Client, ClientOptions};
 use udapose_lab::atomic::write_atomic;
 
-use crate::harness::{ServerProcess, free_addrs, git_commit, machine, read_images, request, server_binary};
+use crate::harness::{ServerProcess, git_commit, machine, read_images, request, server_binary};
 
 const TOKEN: &str = "bench-token";
 const LIMIT: usize = 1_000_000;
@@ -95,21 +94,8 @@ pub fn run(args: &BadInputsArgs) -> Result<()> {
 
 /// A server with a token and the 1 MB limit, the shipped model as `car`.
 fn start(binary: &Path, model: &Path) -> Result<(ServerProcess, std::net::SocketAddr)> {
-    let dir = std::env::temp_dir().join(format!("udapose-bench-bad-inputs-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.join("models"))?;
-    std::os::unix::fs::symlink(model, dir.join("models/car"))?;
-    let [http, grpc] = free_addrs(2)?[..] else { unreachable!("two addresses") };
-    let mut command = Command::new(binary);
-    command
-        .args(["--http-addr", &http.to_string(), "--grpc-addr", &grpc.to_string()])
-        .arg("--models")
-        .arg(dir.join("models"))
-        .arg("--store")
-        .arg(dir.join("state"))
-        .args(["--token", TOKEN, "--max-request-bytes", &LIMIT.to_string()])
-        .env("RUST_LOG", "warn");
-    Ok((ServerProcess::spawn(command, dir, http)?, grpc))
+    let limit = LIMIT.to_string();
+    ServerProcess::serve_model(binary, model, "bad-inputs", &["--token", TOKEN, "--max-request-bytes", &limit], false)
 }
 
 /// The row for the answer just received: panics logged so far, and a health check.

@@ -92,6 +92,34 @@ impl ServerProcess {
         Ok(server)
     }
 
+    /// A server on `model` (served as `car`) on free loopback ports, in a scratch directory
+    /// `udapose-bench-<name>-<pid>`, with `flags`; with `verbose`, its own crate logs at `info`
+    /// so that [`ServerProcess::log`] shows model loads and job events. Returns it and its gRPC
+    /// address.
+    pub(crate) fn serve_model(
+        binary: &Path,
+        model: &Path,
+        name: &str,
+        flags: &[&str],
+        verbose: bool,
+    ) -> Result<(Self, SocketAddr)> {
+        let dir = std::env::temp_dir().join(format!("udapose-bench-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        fs::create_dir_all(dir.join("models"))?;
+        std::os::unix::fs::symlink(model, dir.join("models/car"))?;
+        let [http, grpc] = free_addrs(2)?[..] else { unreachable!("two addresses") };
+        let mut command = Command::new(binary);
+        command
+            .args(["--http-addr", &http.to_string(), "--grpc-addr", &grpc.to_string()])
+            .arg("--models")
+            .arg(dir.join("models"))
+            .arg("--store")
+            .arg(dir.join("state"))
+            .args(flags)
+            .env("RUST_LOG", if verbose { "warn,udapose_server=info" } else { "warn" });
+        Ok((Self::spawn(command, dir, http)?, grpc))
+    }
+
     /// The server's log so far, without terminal colour codes.
     pub(crate) fn log(&self) -> String {
         let text = fs::read_to_string(self.dir.join("server.log")).unwrap_or_default();

@@ -3,10 +3,8 @@
 //! processes took meanwhile.
 
 use std::{
-    fs,
     net::SocketAddr,
     path::Path,
-    process::Command,
     sync::{
         Arc, Mutex,
         atomic::{AtomicBool, Ordering},
@@ -18,9 +16,7 @@ use std::{
 use anyhow::Result;
 use serde_json::{Value, json};
 
-use crate::harness::{
-    Level, Record, ServerProcess, estimate, free_addrs, machine_busy_ticks, percentile, process_ticks,
-};
+use crate::harness::{Level, Record, ServerProcess, estimate, machine_busy_ticks, percentile, process_ticks};
 
 impl ServerProcess {
     /// `extra`: more server flags; with any, the server logs at `info` (its own crate) so that
@@ -33,22 +29,11 @@ impl ServerProcess {
         extra: &[&str],
     ) -> Result<Self> {
         let tag = if extra.is_empty() { "" } else { "-adapt" };
-        let dir = std::env::temp_dir().join(format!("udapose-bench-service-{}-{max_batch}{tag}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        fs::create_dir_all(dir.join("models"))?;
-        std::os::unix::fs::symlink(model, dir.join("models/car"))?;
-        let [http, grpc] = free_addrs(2)?[..] else { unreachable!() };
-        let mut command = Command::new(binary);
-        command
-            .args(["--http-addr", &http.to_string(), "--grpc-addr", &grpc.to_string()])
-            .arg("--models")
-            .arg(dir.join("models"))
-            .arg("--store")
-            .arg(dir.join("state"))
-            .args(["--max-batch", &max_batch.to_string(), "--max-delay-ms", &max_delay_ms.to_string()])
-            .args(extra)
-            .env("RUST_LOG", if extra.is_empty() { "warn" } else { "warn,udapose_server=info" });
-        Self::spawn(command, dir, http)
+        let (batch, delay) = (max_batch.to_string(), max_delay_ms.to_string());
+        let flags = [&["--max-batch", batch.as_str(), "--max-delay-ms", delay.as_str()], extra].concat();
+        let (server, _grpc) =
+            Self::serve_model(binary, model, &format!("service-{max_batch}{tag}"), &flags, !extra.is_empty())?;
+        Ok(server)
     }
 }
 
