@@ -33,7 +33,7 @@ pub(crate) async fn adapt(client: &Client, args: AdaptArgs) -> Result<ExitCode> 
         .await
         .with_context(|| format!("starting a job for {}", args.category))?;
     if args.json {
-        println!("{}", json!({ "job": output::job_json(&job) }));
+        println!("{}", json!({ "job": output::job_json(&job)? }));
     } else {
         println!("{}", output::job_started_line(&job));
     }
@@ -133,7 +133,7 @@ pub(crate) async fn watch(client: &Client, job_id: &str, after_seq: u64, json: b
         _ => (last.version.clone(), last.message.clone()),
     };
     if json {
-        println!("{}", output::result_json(job_id, last.state, &version, &reason));
+        println!("{}", output::result_json(job_id, last.state, &version, &reason)?);
     } else {
         println!("{}", output::final_line(job_id, last.state, &version, &reason));
     }
@@ -153,7 +153,8 @@ impl Followed {
         let mut events = client.watch_job(job_id, self.seq).await?;
         while let Some(event) = events.message().await? {
             if json {
-                println!("{}", json!({ "event": output::event_json(&event) }));
+                let event = output::event_json(&event).map_err(|e| ClientError::Protocol(e.to_string()))?;
+                println!("{}", json!({ "event": event }));
             } else {
                 println!("{}", output::event_line(&event));
                 if !event.gate.is_empty() && event.gate != self.gate {

@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use inputs::{expand, parse_box, read_input};
 use serde_json::{Value, json};
-use udapose_client::{BoundingBox, Client, ClientOptions, ModelInfo, PoseEstimate};
+use udapose_client::{BoundingBox, Client, ClientOptions, ModelInfo};
 use udapose_proto::v1::{EstimateRequest, EstimateResponse, estimate_request::Input};
 
 /// The exit status when a followed job ended other than ACTIVATED.
@@ -263,14 +263,7 @@ async fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Describe { category } => {
             let d = client.describe_model(&category).await.with_context(|| format!("describing {category}"))?;
-            let manifest: Value = serde_json::from_str(&d.manifest_json).unwrap_or(Value::Null);
-            let info = d.info.unwrap_or_default();
-            let out = json!({
-                "category": info.category, "version": info.version, "ready": info.ready,
-                "generation": d.generation, "trained_as": d.trained_as, "backbone": d.backbone,
-                "feature_dim": d.feature_dim, "vertices": d.vertices, "crop": [d.crop_height, d.crop_width],
-                "cuboid": d.cuboid, "error": d.error, "manifest": manifest,
-            });
+            let out = udapose_api::ModelDescription::from(d);
             println!("{}", serde_json::to_string_pretty(&out)?);
         }
         Command::Estimate { category, bbox, json, images } => {
@@ -287,7 +280,7 @@ async fn models_command(client: &Client, action: ModelsCommand, json: bool) -> R
         ModelsCommand::Versions { category } => {
             let v = client.list_versions(&category).await.with_context(|| format!("listing {category}'s versions"))?;
             if json {
-                println!("{}", output::versions_json(&category, &v));
+                println!("{}", output::versions_json(&v));
             } else {
                 output::versions_lines(&v).iter().for_each(|l| println!("{l}"));
             }
@@ -323,7 +316,7 @@ async fn jobs_command(client: &Client, action: JobsCommand, json: bool) -> Resul
         JobsCommand::List { category } => {
             let jobs = client.list_jobs(category.as_deref()).await.context("listing jobs")?;
             if json {
-                println!("{}", json!({ "jobs": jobs.iter().map(output::job_json).collect::<Vec<_>>() }));
+                println!("{}", json!({ "jobs": jobs.iter().map(output::job_json).collect::<Result<Vec<_>, _>>()? }));
             } else {
                 output::jobs_table(&jobs).iter().for_each(|l| println!("{l}"));
             }
@@ -331,7 +324,7 @@ async fn jobs_command(client: &Client, action: JobsCommand, json: bool) -> Resul
         JobsCommand::Get { id } => {
             let job = client.get_job(&id).await.with_context(|| format!("getting job {id}"))?;
             if json {
-                println!("{}", output::job_json(&job));
+                println!("{}", output::job_json(&job)?);
             } else {
                 output::job_lines(&job).iter().for_each(|l| println!("{l}"));
             }
@@ -340,7 +333,7 @@ async fn jobs_command(client: &Client, action: JobsCommand, json: bool) -> Resul
         JobsCommand::Cancel { id, reason } => {
             let job = client.cancel_job(&id, &reason).await.with_context(|| format!("cancelling job {id}"))?;
             if json {
-                println!("{}", output::job_json(&job));
+                println!("{}", output::job_json(&job)?);
             } else {
                 println!("{}", output::job_final_line(&job));
             }
@@ -408,45 +401,20 @@ fn print_rows(name: &str, response: &EstimateResponse, width: usize) {
     }
 }
 
-/// The same shape as the HTTP API's answer, plus the image's name.
+/// The HTTP API's answer (`udapose-api`'s type, converted from gRPC), plus the image's name.
 fn response_json(name: &str, r: &EstimateResponse) -> Value {
-    let t = r.timings.unwrap_or_default();
-    json!({
-        "image": name,
-        "model_version": r.model_version,
-        "estimates": r.estimates.iter().map(pose_json).collect::<Vec<_>>(),
-        "timings": {
-            "decode_ms": t.decode_ms, "queue_ms": t.queue_ms, "crop_ms": t.crop_ms, "backbone_ms": t.backbone_ms,
-            "solver_ms": t.solver_ms, "total_ms": t.total_ms, "batch_size": t.batch_size,
-        },
-    })
+    #[derive(serde::Serialize)]
+    struct Named<'a> {
+        image: &'a str,
+        #[serde(flatten)]
+        answer: udapose_api::EstimateAnswer,
+    }
+    output::to_value(Named { image: name, answer: r.clone().into() })
 }
 
-fn pose_json(p: &PoseEstimate) -> Value {
-    let b = p.crop_box.unwrap_or_default();
-    json!({
-        "azimuth": p.azimuth, "elevation": p.elevation, "theta": p.theta,
-        "azimuth_deg": p.azimuth_deg, "elevation_deg": p.elevation_deg, "theta_deg": p.theta_deg,
-        "distance": p.distance, "rotation": p.rotation, "score": p.score,
-        "hypotheses": p.hypotheses.iter().map(|h| json!({
-            "azimuth": h.azimuth, "elevation": h.elevation, "theta": h.theta, "distance": h.distance, "score": h.score,
-        })).collect::<Vec<_>>(),
-        "crop_box": { "x0": b.x0, "y0": b.y0, "x1": b.x1, "y1": b.y1 },
-        "cuboid": p.cuboid,
-        "model_version": p.model_version,
-    })
-}
-
-/// Same shape as the HTTP `GET /v1/models`; an empty version is `null`.
+/// The HTTP `GET /v1/models` answer.
 fn models_json(models: &[ModelInfo]) -> Value {
-    let models: Vec<_> = models
-        .iter()
-        .map(|m| {
-            let version = (!m.version.is_empty()).then_some(&m.version);
-            json!({ "category": m.category, "version": version, "ready": m.ready })
-        })
-        .collect();
-    json!({ "models": models })
+    output::to_value(udapose_api::ModelList { models: models.iter().cloned().map(Into::into).collect() })
 }
 
 fn print_table(models: &[ModelInfo]) {

@@ -1,14 +1,14 @@
 //! What the `udapose` CLI prints for adaptation, jobs and model versions: the text lines (a
 //! stable format that scripts and tests may match, documented in `udapose adapt --help`) and
-//! the JSON objects (proto field names, enum values by name, absent values `null`).
+//! the JSON objects (the HTTP API's: `udapose-api`'s types, converted from the gRPC messages).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use serde_json::{Value, json};
+use udapose_api::{self as api, UnknownState};
 use udapose_client::{
-    ActivationEntry, GateCriterion, Job, JobEvent, JobState, ListVersionsResponse, Upload, VersionInfo, state_name,
-    target_ack,
+    ActivationEntry, GateCriterion, Job, JobEvent, JobState, ListVersionsResponse, Upload, state_name, target_ack,
 };
 
 /// The PNG, JPEG and WebP files directly in `dir` (not in its subfolders), sorted by path.
@@ -257,63 +257,34 @@ pub fn activation_line(verb: &str, e: &ActivationEntry) -> String {
     format!("{verb} {} version {} generation {} (previous {})", e.category, e.version, e.generation, dash(&e.previous))
 }
 
-pub fn event_json(e: &JobEvent) -> Value {
-    json!({
-        "job_id": e.job_id, "seq": e.seq, "state": state_name(e.state), "time": e.time, "message": e.message,
-        "round": e.round, "max_rounds": e.max_rounds, "fired_ratio": e.fired_ratio,
-        "pose_change_median_deg": e.pose_change_median_deg, "images_used": e.images_used,
-        "images_held_out": e.images_held_out, "eta_seconds": e.eta_seconds,
-        "gate": e.gate.iter().map(gate_json).collect::<Vec<_>>(), "version": none_if_empty(&e.version),
-    })
+// The JSON below is the HTTP API's own (udapose-api's types), converted from the gRPC messages.
+
+pub fn event_json(e: &JobEvent) -> Result<Value, UnknownState> {
+    Ok(to_value(api::JobEvent::try_from(e.clone())?))
 }
 
-fn gate_json(c: &GateCriterion) -> Value {
-    json!({
-        "name": c.name, "active": c.active, "candidate": c.candidate, "threshold": c.threshold,
-        "passed": c.passed, "detail": c.detail,
-    })
-}
-
-pub fn job_json(j: &Job) -> Value {
-    json!({
-        "job_id": j.job_id, "category": j.category, "state": state_name(j.state),
-        "source_version": j.source_version, "source_generation": j.source_generation,
-        "version": none_if_empty(&j.version), "created": j.created, "updated": j.updated,
-        "images_used": j.images_used, "images_held_out": j.images_held_out, "reason": j.reason,
-        "client_job_id": none_if_empty(&j.client_job_id), "last_event": j.last_event.as_ref().map(event_json),
-    })
+pub fn job_json(j: &Job) -> Result<Value, UnknownState> {
+    Ok(to_value(api::JobView::try_from(j.clone())?))
 }
 
 /// `{"result": {job_id, state, version, reason}}`: the last line of `adapt --json` and
 /// `jobs watch --json`.
-pub fn result_json(job_id: &str, state: i32, version: &str, reason: &str) -> Value {
-    json!({ "result": {
-        "job_id": job_id, "state": state_name(state), "version": none_if_empty(version), "reason": reason,
-    }})
+pub fn result_json(job_id: &str, state: i32, version: &str, reason: &str) -> Result<Value, UnknownState> {
+    let state = api::JobState::try_from(state)?;
+    Ok(json!({ "result": { "job_id": job_id, "state": state, "version": version, "reason": reason } }))
 }
 
-pub fn versions_json(category: &str, v: &ListVersionsResponse) -> Value {
-    json!({
-        "category": category,
-        "versions": v.versions.iter().map(version_json).collect::<Vec<_>>(),
-        "activations": v.activations.iter().map(activation_json).collect::<Vec<_>>(),
-    })
-}
-
-fn version_json(v: &VersionInfo) -> Value {
-    json!({ "version": v.version, "trained_as": v.trained_as, "active": v.active, "job_id": none_if_empty(&v.job_id) })
+pub fn versions_json(v: &ListVersionsResponse) -> Value {
+    to_value(api::Versions::from(v.clone()))
 }
 
 pub fn activation_json(a: &ActivationEntry) -> Value {
-    json!({
-        "category": a.category, "generation": a.generation, "version": a.version,
-        "previous": none_if_empty(&a.previous), "actor": a.actor, "reason": a.reason, "time": a.time,
-        "job_id": none_if_empty(&a.job_id),
-    })
+    to_value(api::ActivationEntry::from(a.clone()))
 }
 
-fn none_if_empty(s: &str) -> Option<&str> {
-    (!s.is_empty()).then_some(s)
+/// Serialising plain data structs cannot fail.
+pub fn to_value(v: impl serde::Serialize) -> Value {
+    serde_json::to_value(v).expect("plain data serialises")
 }
 
 fn dash(s: &str) -> &str {
@@ -379,7 +350,7 @@ pub fn utc(seconds: f64) -> String {
 
 #[cfg(test)]
 mod tests {
-    use udapose_client::TargetAck;
+    use udapose_client::{TargetAck, VersionInfo};
 
     use super::*;
 
@@ -424,9 +395,11 @@ mod tests {
         assert_eq!(gate_line(&c), "  gate score_margin active 0.0210 candidate 0.0350 threshold 0.0260 passed");
         let c = GateCriterion { passed: false, detail: "median over 12".into(), ..c };
         assert!(gate_line(&c).ends_with("FAILED (median over 12)"));
-        let j = event_json(&e);
+        let j = event_json(&e).unwrap();
         assert_eq!(j["state"], "VALIDATING");
         assert_eq!(j["pose_change_median_deg"], Value::Null);
+        e.state = 0;
+        assert!(event_json(&e).unwrap_err().to_string().contains("job state 0"));
     }
 
     #[test]

@@ -13,7 +13,7 @@ use tonic::{
 use tonic_types::{ErrorDetails, StatusExt};
 use udapose_proto::v1::{
     self as pb, DescribeModelRequest, EstimateRequest, EstimateResponse, ListModelsRequest, ListModelsResponse,
-    ModelDescription, ModelInfo,
+    ModelDescription,
     adaptation_service_server::{AdaptationService, AdaptationServiceServer},
     estimate_request::Input,
     model_service_server::{ModelService, ModelServiceServer},
@@ -21,13 +21,13 @@ use udapose_proto::v1::{
 };
 
 use udapose_service::{
-    api::{EstimateAnswer, EstimateInput, ImageInput, PoseAnswer},
+    api::{EstimateInput, ImageInput},
     auth::Role,
     buffer::AckStatus,
     error::ApiError,
-    jobs::{JobEvent, JobState, JobView, Overrides, Rejection, TargetAck},
-    service::{ActivationView, Service},
-    views::{self, ModelSummary},
+    jobs::{Overrides, Rejection, TargetAck},
+    service::Service,
+    views,
 };
 
 /// Serves until `stop` resolves, then lets in-flight calls finish.
@@ -128,7 +128,7 @@ impl PoseService for Api {
         let deadline = grpc_timeout(request.metadata());
         let input = to_input(request.into_inner(), deadline).map_err(|e| self.refuse(e, "grpc"))?;
         let answer = self.service.estimate(input, "grpc").await.map_err(|e| to_status(&e))?;
-        Ok(Response::new(to_response(answer)))
+        Ok(Response::new(answer.into()))
     }
 
     type EstimateStreamStream = EstimateStream;
@@ -157,7 +157,7 @@ impl PoseService for Api {
                     Err(e) => Err(e),
                 };
                 let response = match result {
-                    Ok(answer) => to_response(answer),
+                    Ok(answer) => answer.into(),
                     Err(e) => EstimateResponse {
                         frame_id,
                         error: Some(pb::ErrorStatus { code: grpc_code(&e) as i32, message: e.to_string() }),
@@ -177,7 +177,7 @@ impl PoseService for Api {
 impl ModelService for Api {
     async fn list_models(&self, request: Request<ListModelsRequest>) -> Result<Response<ListModelsResponse>, Status> {
         self.authorize(&request, Role::Read)?;
-        let models = self.service.registry.categories().map(|c| model_info(views::summary(c))).collect();
+        let models = self.service.registry.categories().map(|c| views::summary(c).into()).collect();
         Ok(Response::new(ListModelsResponse { models }))
     }
 
@@ -187,7 +187,7 @@ impl ModelService for Api {
     ) -> Result<Response<ModelDescription>, Status> {
         self.authorize(&request, Role::Read)?;
         let category = self.service.category(&request.get_ref().category).map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(describe(views::describe(category))))
+        Ok(Response::new(views::describe(category).into()))
     }
 
     async fn list_versions(
@@ -195,42 +195,30 @@ impl ModelService for Api {
         request: Request<pb::ListVersionsRequest>,
     ) -> Result<Response<pb::ListVersionsResponse>, Status> {
         self.authorize(&request, Role::Read)?;
-        let (versions, log) =
-            self.service.versions(&request.get_ref().category).await.map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(pb::ListVersionsResponse {
-            versions: versions
-                .into_iter()
-                .map(|v| pb::VersionInfo {
-                    version: v.version,
-                    trained_as: v.trained_as,
-                    active: v.active,
-                    job_id: v.job_id,
-                })
-                .collect(),
-            activations: log.into_iter().map(to_activation).collect(),
-        }))
+        let versions = self.service.versions(&request.get_ref().category).await.map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(versions.into()))
     }
 
     async fn activate(&self, request: Request<pb::ActivateRequest>) -> Result<Response<pb::ActivationEntry>, Status> {
         self.authorize(&request, Role::Admin)?;
         let r = request.into_inner();
-        let view = self
+        let entry = self
             .service
-            .activate(&r.category, Some(r.version), r.reason, r.expected_generation, "api")
+            .activate(&r.category, r.version, r.reason, r.expected_generation, "api")
             .await
             .map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(to_activation(view)))
+        Ok(Response::new(entry.into()))
     }
 
     async fn rollback(&self, request: Request<pb::RollbackRequest>) -> Result<Response<pb::ActivationEntry>, Status> {
         self.authorize(&request, Role::Admin)?;
         let r = request.into_inner();
-        let view = self
+        let entry = self
             .service
-            .activate(&r.category, None, r.reason, r.expected_generation, "api")
+            .rollback(&r.category, r.reason, r.expected_generation, "api")
             .await
             .map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(to_activation(view)))
+        Ok(Response::new(entry.into()))
     }
 }
 
@@ -282,7 +270,7 @@ impl AdaptationService for Api {
         let overrides = Overrides { max_rounds: o.max_rounds, learning_rate: o.learning_rate, seed: o.seed };
         let client_job_id = Some(r.client_job_id).filter(|c| !c.is_empty());
         let job = self.service.start_job(&r.category, overrides, client_job_id).await;
-        Ok(Response::new(to_job(job.map_err(|e| self.refuse(e, "grpc"))?)))
+        Ok(Response::new(job.map_err(|e| self.refuse(e, "grpc"))?.into()))
     }
 
     type WatchJobStream = EventStream;
@@ -292,19 +280,19 @@ impl AdaptationService for Api {
         let r = request.into_inner();
         let events = udapose_service::service::watch(&self.service.jobs, r.job_id, r.after_seq)
             .map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(Box::pin(events.map(|e| e.map(to_event).map_err(|e| to_status(&e))))))
+        Ok(Response::new(Box::pin(events.map(|e| e.map(Into::into).map_err(|e| to_status(&e))))))
     }
 
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
         self.authorize(&request, Role::Read)?;
         let job = self.service.job(request.into_inner().job_id).await.map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(to_job(job)))
+        Ok(Response::new(job.into()))
     }
 
     async fn list_jobs(&self, request: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
         self.authorize(&request, Role::Read)?;
         let category = Some(request.get_ref().category.as_str()).filter(|c| !c.is_empty());
-        let jobs = self.service.jobs.list(category).into_iter().map(to_job).collect();
+        let jobs = self.service.jobs.list(category).into_iter().map(Into::into).collect();
         Ok(Response::new(pb::ListJobsResponse { jobs }))
     }
 
@@ -312,7 +300,7 @@ impl AdaptationService for Api {
         self.authorize(&request, Role::Admin)?;
         let r = request.into_inner();
         let job = self.service.cancel_job(r.job_id, r.reason).await.map_err(|e| self.refuse(e, "grpc"))?;
-        Ok(Response::new(to_job(job)))
+        Ok(Response::new(job.into()))
     }
 }
 
@@ -340,81 +328,6 @@ fn to_ack(a: TargetAck) -> pb::TargetAck {
     }
 }
 
-fn to_state(s: JobState) -> pb::JobState {
-    match s {
-        JobState::Queued => pb::JobState::Queued,
-        JobState::Running => pb::JobState::Running,
-        JobState::Validating => pb::JobState::Validating,
-        JobState::Activated => pb::JobState::Activated,
-        JobState::Rejected => pb::JobState::Rejected,
-        JobState::Superseded => pb::JobState::Superseded,
-        JobState::Failed => pb::JobState::Failed,
-        JobState::Cancelled => pb::JobState::Cancelled,
-    }
-}
-
-fn to_event(e: JobEvent) -> pb::JobEvent {
-    pb::JobEvent {
-        job_id: e.job_id,
-        seq: e.seq,
-        state: to_state(e.state) as i32,
-        time: e.time,
-        message: e.message,
-        round: e.round,
-        max_rounds: e.max_rounds,
-        fired_ratio: e.fired_ratio,
-        pose_change_median_deg: e.pose_change_median_deg,
-        images_used: e.images_used,
-        images_held_out: e.images_held_out,
-        eta_seconds: e.eta_seconds,
-        gate: e
-            .gate
-            .into_iter()
-            .map(|c| pb::GateCriterion {
-                name: c.name,
-                active: c.active,
-                candidate: c.candidate,
-                threshold: c.threshold,
-                passed: c.passed,
-                detail: c.detail,
-            })
-            .collect(),
-        version: e.version,
-    }
-}
-
-fn to_job(j: JobView) -> pb::Job {
-    pb::Job {
-        job_id: j.job_id,
-        category: j.category,
-        state: to_state(j.state) as i32,
-        source_version: j.source_version,
-        source_generation: j.source_generation,
-        version: j.version,
-        created: j.created,
-        updated: j.updated,
-        images_used: j.images_used,
-        images_held_out: j.images_held_out,
-        reason: j.reason,
-        client_job_id: j.client_job_id,
-        last_event: Some(to_event(j.last_event)),
-    }
-}
-
-fn to_activation(v: ActivationView) -> pb::ActivationEntry {
-    let a = v.activation;
-    pb::ActivationEntry {
-        category: v.category,
-        generation: v.generation,
-        version: a.version,
-        previous: a.previous.unwrap_or_default(),
-        actor: a.actor,
-        reason: a.reason,
-        time: a.time,
-        job_id: a.job_id.unwrap_or_default(),
-    }
-}
-
 /// The gRPC status code of a service error.
 fn grpc_code(e: &ApiError) -> tonic::Code {
     match e {
@@ -429,26 +342,6 @@ fn grpc_code(e: &ApiError) -> tonic::Code {
         ApiError::DeadlineExceeded(_) => tonic::Code::DeadlineExceeded,
         ApiError::MethodNotAllowed(_) => tonic::Code::Unimplemented,
         ApiError::Internal(_) => tonic::Code::Internal,
-    }
-}
-
-fn model_info(s: ModelSummary) -> ModelInfo {
-    ModelInfo { category: s.category, version: s.version.unwrap_or_default(), ready: s.ready }
-}
-
-fn describe(d: views::ModelDescription) -> ModelDescription {
-    ModelDescription {
-        error: d.summary.error.clone().unwrap_or_default(),
-        info: Some(model_info(d.summary)),
-        generation: d.generation,
-        trained_as: d.trained_as,
-        backbone: d.backbone,
-        feature_dim: d.feature_dim as u32,
-        vertices: d.vertices as u32,
-        crop_height: d.crop[0] as u32,
-        crop_width: d.crop[1] as u32,
-        cuboid: d.cuboid,
-        manifest_json: d.manifest.map(|m| serde_json::to_string(&m).unwrap_or_default()).unwrap_or_default(),
     }
 }
 
@@ -486,54 +379,6 @@ fn grpc_timeout(metadata: &tonic::metadata::MetadataMap) -> Option<Duration> {
         "n" => Duration::from_nanos(n),
         _ => return None,
     })
-}
-
-fn to_response(a: EstimateAnswer) -> EstimateResponse {
-    let t = a.timings;
-    EstimateResponse {
-        estimates: a.estimates.into_iter().map(to_estimate).collect(),
-        model_version: a.model_version,
-        frame_id: a.frame_id,
-        timings: Some(pb::Timings {
-            decode_ms: t.decode_ms,
-            queue_ms: t.queue_ms,
-            crop_ms: t.crop_ms,
-            backbone_ms: t.backbone_ms,
-            solver_ms: t.solver_ms,
-            total_ms: t.total_ms,
-            batch_size: t.batch_size,
-        }),
-        error: None,
-    }
-}
-
-fn to_estimate(p: PoseAnswer) -> pb::PoseEstimate {
-    let b = p.crop_box;
-    pb::PoseEstimate {
-        azimuth: p.azimuth,
-        elevation: p.elevation,
-        theta: p.theta,
-        azimuth_deg: p.azimuth_deg,
-        elevation_deg: p.elevation_deg,
-        theta_deg: p.theta_deg,
-        distance: p.distance,
-        rotation: p.rotation,
-        score: p.score,
-        hypotheses: p
-            .hypotheses
-            .into_iter()
-            .map(|h| pb::Hypothesis {
-                azimuth: h.azimuth,
-                elevation: h.elevation,
-                theta: h.theta,
-                distance: h.distance,
-                score: h.score,
-            })
-            .collect(),
-        crop_box: Some(pb::BoundingBox { x0: b.x0, y0: b.y0, x1: b.x1, y1: b.y1 }),
-        cuboid: p.cuboid,
-        model_version: p.model_version,
-    }
 }
 
 #[cfg(test)]

@@ -15,6 +15,9 @@ use axum::{
 use serde::Deserialize;
 use serde_json::{Value, json};
 
+use udapose_api::{
+    ActivationEntry, ErrorBody, EstimateAnswer, JobList, JobView, ModelDescription, ModelList, Versions,
+};
 use udapose_service::{
     api::{EstimateInput, ImageInput},
     auth::Role,
@@ -83,7 +86,7 @@ impl IntoResponse for HttpError {
     fn into_response(self) -> Response {
         let e = self.0;
         let status = StatusCode::from_u16(e.http_status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
-        let body = Json(json!({ "error": { "code": e.code_name(), "message": e.to_string() } }));
+        let body = Json(ErrorBody::new(e.code_name(), e.to_string()));
         let mut response = (status, body).into_response();
         if let Some(after) = e.retry_after() {
             let secs = after.as_secs().max(1).to_string();
@@ -144,46 +147,19 @@ async fn method_not_allowed(State(service): State<Arc<Service>>, request: Reques
     refuse(&service, ApiError::MethodNotAllowed(format!("{method} is not allowed on {path}; see /openapi.json")))
 }
 
-async fn list_models(State(service): State<Arc<Service>>, headers: HeaderMap) -> Result<Json<Value>, HttpError> {
+async fn list_models(State(service): State<Arc<Service>>, headers: HeaderMap) -> Result<Json<ModelList>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
-    let models: Vec<Value> = service
-        .registry
-        .categories()
-        .map(|c| {
-            let s = views::summary(c);
-            let mut m = json!({ "category": s.category, "version": s.version, "ready": s.ready });
-            if let Some(e) = s.error {
-                m["error"] = json!(e);
-            }
-            m
-        })
-        .collect();
-    Ok(Json(json!({ "models": models })))
+    Ok(Json(ModelList { models: service.registry.categories().map(|c| views::summary(c)).collect() }))
 }
 
 async fn describe_model(
     State(service): State<Arc<Service>>,
     headers: HeaderMap,
     Path(category): Path<String>,
-) -> Result<Json<Value>, HttpError> {
+) -> Result<Json<ModelDescription>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
     let category = service.category(&category).map_err(|e| refuse(&service, e))?;
-    let d = views::describe(category);
-    Ok(Json(json!({
-        "category": d.summary.category,
-        "version": d.summary.version.unwrap_or_default(),
-        "ready": d.summary.ready,
-        "generation": d.generation,
-        "trained_as": d.trained_as,
-        "backbone": d.backbone,
-        "feature_dim": d.feature_dim,
-        "vertices": d.vertices,
-        "crop_height": d.crop[0],
-        "crop_width": d.crop[1],
-        "cuboid": d.cuboid,
-        "error": d.summary.error.unwrap_or_default(),
-        "manifest": d.manifest,
-    })))
+    Ok(Json(views::describe(category)))
 }
 
 /// `POST /v1/pose/{category}`: the image as the raw body (PNG, JPEG, WebP; raw RGB8 with
@@ -194,7 +170,7 @@ async fn estimate(
     Path(category): Path<String>,
     RawQuery(query): RawQuery,
     request: Request,
-) -> Result<Json<udapose_service::api::EstimateAnswer>, HttpError> {
+) -> Result<Json<EstimateAnswer>, HttpError> {
     authorize(&service, request.headers(), Role::Read)?;
     let query = EstimateQuery::parse(query.as_deref().unwrap_or("")).map_err(|e| refuse(&service, e))?;
     let bytes = read_image(&service, request).await.map_err(|e| refuse(&service, e))?;
@@ -211,10 +187,9 @@ async fn list_versions(
     State(service): State<Arc<Service>>,
     headers: HeaderMap,
     Path(category): Path<String>,
-) -> Result<Json<Value>, HttpError> {
+) -> Result<Json<Versions>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
-    let (versions, activations) = service.versions(&category).await.map_err(|e| refuse(&service, e))?;
-    Ok(Json(json!({ "versions": versions, "activations": activations })))
+    service.versions(&category).await.map(Json).map_err(|e| refuse(&service, e))
 }
 
 /// The body of `activate` and `rollback` (all optional but `version` for activate).
@@ -239,7 +214,7 @@ async fn activate(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
+) -> Result<Json<ActivationEntry>, HttpError> {
     switch_version(&service, &headers, &category, &body, false).await
 }
 
@@ -248,7 +223,7 @@ async fn rollback(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
+) -> Result<Json<ActivationEntry>, HttpError> {
     switch_version(&service, &headers, &category, &body, true).await
 }
 
@@ -259,17 +234,17 @@ async fn switch_version(
     category: &str,
     body: &Bytes,
     rollback: bool,
-) -> Result<Json<udapose_service::service::ActivationView>, HttpError> {
+) -> Result<Json<ActivationEntry>, HttpError> {
     authorize(service, headers, Role::Admin)?;
     let b: ActivateBody = json_body(service, body)?;
     let bad = |why: &str| refuse(service, ApiError::InvalidArgument(why.into()));
-    let version = match (rollback, b.version) {
+    let entry = match (rollback, b.version) {
         (false, None) => return Err(bad("the body needs a \"version\"")),
         (true, Some(_)) => return Err(bad("rollback takes no version")),
-        (_, version) => version,
+        (false, Some(version)) => service.activate(category, version, b.reason, b.expected_generation, "api").await,
+        (true, None) => service.rollback(category, b.reason, b.expected_generation, "api").await,
     };
-    let view = service.activate(category, version, b.reason, b.expected_generation, "api").await;
-    view.map(Json).map_err(|e| refuse(service, e))
+    entry.map(Json).map_err(|e| refuse(service, e))
 }
 
 /// `POST /v1/adapt/{category}/images`: one image as the raw body, or many as the parts of a
@@ -307,7 +282,7 @@ async fn start_job(
     headers: HeaderMap,
     Path(category): Path<String>,
     body: Bytes,
-) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
+) -> Result<Json<JobView>, HttpError> {
     authorize(&service, &headers, Role::Write)?;
     let b: StartJobBody = json_body(&service, &body)?;
     let job = service.start_job(&category, b.overrides, b.client_job_id).await;
@@ -318,17 +293,17 @@ async fn list_jobs(
     State(service): State<Arc<Service>>,
     headers: HeaderMap,
     RawQuery(query): RawQuery,
-) -> Result<Json<Value>, HttpError> {
+) -> Result<Json<JobList>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
     let category = query_value(query.as_deref(), "category");
-    Ok(Json(json!({ "jobs": service.jobs.list(category.as_deref()) })))
+    Ok(Json(JobList { jobs: service.jobs.list(category.as_deref()) }))
 }
 
 async fn get_job(
     State(service): State<Arc<Service>>,
     headers: HeaderMap,
     Path(id): Path<String>,
-) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
+) -> Result<Json<JobView>, HttpError> {
     authorize(&service, &headers, Role::Read)?;
     service.job(id).await.map(Json).map_err(|e| refuse(&service, e))
 }
@@ -368,7 +343,7 @@ async fn cancel_job(
     headers: HeaderMap,
     Path(id): Path<String>,
     RawQuery(query): RawQuery,
-) -> Result<Json<udapose_service::jobs::JobView>, HttpError> {
+) -> Result<Json<JobView>, HttpError> {
     authorize(&service, &headers, Role::Admin)?;
     let reason = query_value(query.as_deref(), "reason").unwrap_or_default();
     service.cancel_job(id, reason).await.map(Json).map_err(|e| refuse(&service, e))

@@ -1,5 +1,6 @@
-//! The OpenAPI 3.1 document of the HTTP API, served at `/openapi.json` (written by hand: the
-//! API is small and mirrors proto/udapose/v1).
+//! The OpenAPI 3.1 document of the HTTP API, served at `/openapi.json`. The bodies' schemas are
+//! derived from the types the handlers serialise (`udapose_api::schemas`); the routes, whose
+//! multipart and raw-image bodies no derive describes well, are written here.
 
 use serde_json::{Value, json};
 
@@ -15,7 +16,7 @@ pub fn document() -> Value {
         "paths": paths(),
         "components": {
             "securitySchemes": { "bearer": { "type": "http", "scheme": "bearer" } },
-            "schemas": schemas(),
+            "schemas": udapose_api::schemas(),
         },
     })
 }
@@ -58,20 +59,20 @@ fn paths() -> Value {
                 "504": err("The deadline passed before the estimate started"),
             },
         } },
-        "/v1/models": { "get": { "summary": "Every configured model", "responses": { "200": { "description": "{models: [{category, version, ready, error?}]}" } } } },
+        "/v1/models": { "get": { "summary": "Every configured model", "responses": { "200": { "description": "Every model", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Models" } } } } } } },
         "/v1/models/{category}": { "get": { "summary": "One model in detail", "parameters": [category],
-            "responses": { "200": { "description": "category, version, generation, backbone, crop, cuboid, manifest" }, "404": err("Unknown category") } } },
+            "responses": { "200": { "description": "The model", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/ModelDescription" } } } }, "404": err("Unknown category") } } },
         "/v1/models/{category}/versions": { "get": { "summary": "Every complete version and the activation log, newest first", "parameters": [category],
-            "responses": { "200": { "description": "{versions: [{version, trained_as, active, job_id}], activations: [{generation, version, previous, actor, reason, time, job_id?}]}" }, "404": err("Unknown category") } } },
+            "responses": { "200": { "description": "Versions and activation log", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Versions" } } } }, "404": err("Unknown category") } } },
         "/v1/models/{category}/activate": { "post": { "summary": "Activate a version (admin)", "parameters": [category],
             "requestBody": { "required": true, "content": { "application/json": { "schema": { "type": "object", "required": ["version"],
                 "properties": { "version": { "type": "string" }, "reason": { "type": "string" }, "expected_generation": { "type": "integer" } } } } } },
-            "responses": { "200": { "description": "The new activation-log entry" }, "404": err("Unknown category or version"),
+            "responses": { "200": { "description": "The new activation-log entry", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Activation" } } } }, "404": err("Unknown category or version"),
                 "409": err("expected_generation is stale, or another activation won the race (ABORTED)") } } },
         "/v1/models/{category}/rollback": { "post": { "summary": "Re-activate the previous version (admin)", "parameters": [category],
             "requestBody": { "content": { "application/json": { "schema": { "type": "object",
                 "properties": { "reason": { "type": "string" }, "expected_generation": { "type": "integer" } } } } } },
-            "responses": { "200": { "description": "The new activation-log entry" }, "400": err("Nothing to roll back to (FAILED_PRECONDITION)"), "409": err("Stale expected_generation (ABORTED)") } } },
+            "responses": { "200": { "description": "The new activation-log entry", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Activation" } } } }, "400": err("Nothing to roll back to (FAILED_PRECONDITION)"), "409": err("Stale expected_generation (ABORTED)") } } },
         "/v1/adapt/{category}/images": { "post": { "summary": "Buffer target-domain images for adaptation (write)", "parameters": [category],
             "requestBody": { "required": true, "content": {
                 "image/png": { "schema": { "type": "string", "format": "binary" } },
@@ -85,7 +86,7 @@ fn paths() -> Value {
             "responses": { "200": { "description": "The job", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Job" } } } },
                 "400": err("Too few buffered images (FAILED_PRECONDITION)"), "404": err("Unknown category") } } },
         "/v1/jobs": { "get": { "summary": "Jobs, newest first", "parameters": [{ "name": "category", "in": "query", "schema": { "type": "string" } }],
-            "responses": { "200": { "description": "{jobs: [Job]}" } } } },
+            "responses": { "200": { "description": "Jobs, newest first", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Jobs" } } } } } } },
         "/v1/jobs/{id}": { "get": { "summary": "One job", "parameters": [{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }],
             "responses": { "200": { "description": "The job", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Job" } } } }, "404": err("No such job") } } },
         "/v1/jobs/{id}/events": { "get": { "summary": "The job's events as Server-Sent Events (event: job, id: seq), ending after the terminal one",
@@ -94,59 +95,9 @@ fn paths() -> Value {
             "responses": { "200": { "description": "text/event-stream of JobEvent JSON" }, "404": err("No such job") } } },
         "/v1/jobs/{id}/cancel": { "post": { "summary": "Cancel a queued or running job (admin)",
             "parameters": [{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }, { "name": "reason", "in": "query", "schema": { "type": "string" } }],
-            "responses": { "200": { "description": "The job (CANCELLED once it stops)" }, "404": err("No such job") } } },
+            "responses": { "200": { "description": "The job (CANCELLED once it stops)", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Job" } } } }, "404": err("No such job") } } },
         "/healthz": { "get": { "summary": "Liveness", "security": [], "responses": { "200": { "description": "ok" } } } },
         "/readyz": { "get": { "summary": "Readiness: every model loaded", "security": [], "responses": { "200": { "description": "ready" }, "503": { "description": "not ready, with the reason" } } } },
         "/metrics": { "get": { "summary": "Prometheus metrics", "security": [], "responses": { "200": { "description": "text exposition format" } } } },
-    })
-}
-
-/// The bodies' schemas.
-fn schemas() -> Value {
-    let number = json!({ "type": "number" });
-    let angles = |extra: Value| {
-        let mut props = json!({
-            "azimuth": number, "elevation": number, "theta": number, "distance": number, "score": number,
-        });
-        if let (Some(p), Some(e)) = (props.as_object_mut(), extra.as_object()) {
-            p.extend(e.clone());
-        }
-        props
-    };
-    json!({
-        "Error": { "type": "object", "properties": { "error": { "type": "object", "properties": {
-            "code": { "type": "string", "description": "gRPC code name, e.g. INVALID_ARGUMENT" }, "message": { "type": "string" } } } } },
-        "Box": { "type": "object", "properties": { "x0": number, "y0": number, "x1": number, "y1": number } },
-        "Hypothesis": { "type": "object", "properties": angles(json!({})) },
-        "PoseEstimate": { "type": "object", "properties": angles(json!({
-            "azimuth_deg": number, "elevation_deg": number, "theta_deg": number,
-            "rotation": { "type": "array", "items": number, "description": "row-major R(a, e, theta)" },
-            "hypotheses": { "type": "array", "items": { "$ref": "#/components/schemas/Hypothesis" } },
-            "crop_box": { "$ref": "#/components/schemas/Box" },
-            "cuboid": { "type": "array", "items": number, "description": "8 corners (x, y) in image pixels" },
-            "model_version": { "type": "string" },
-        })) },
-        "Timings": { "type": "object", "properties": {
-            "decode_ms": number, "queue_ms": number, "crop_ms": number, "backbone_ms": number,
-            "solver_ms": number, "total_ms": number, "batch_size": { "type": "integer" } } },
-        "JobEvent": { "type": "object", "properties": {
-            "job_id": { "type": "string" }, "seq": { "type": "integer" }, "state": { "type": "string" }, "time": number,
-            "message": { "type": "string" }, "round": { "type": "integer" }, "max_rounds": { "type": "integer" },
-            "fired_ratio": number, "pose_change_median_deg": number, "images_used": { "type": "integer" },
-            "images_held_out": { "type": "integer" }, "eta_seconds": number, "version": { "type": "string" },
-            "gate": { "type": "array", "items": { "type": "object", "properties": {
-                "name": { "type": "string" }, "active": number, "candidate": number, "threshold": number,
-                "passed": { "type": "boolean" }, "detail": { "type": "string" } } } } } },
-        "Job": { "type": "object", "properties": {
-            "job_id": { "type": "string" }, "category": { "type": "string" },
-            "state": { "type": "string", "enum": ["QUEUED", "RUNNING", "VALIDATING", "ACTIVATED", "REJECTED", "SUPERSEDED", "FAILED", "CANCELLED"] },
-            "source_version": { "type": "string" }, "source_generation": { "type": "integer" }, "version": { "type": "string" },
-            "created": number, "updated": number, "images_used": { "type": "integer" }, "images_held_out": { "type": "integer" },
-            "reason": { "type": "string" }, "client_job_id": { "type": "string" },
-            "last_event": { "$ref": "#/components/schemas/JobEvent" } } },
-        "EstimateResponse": { "type": "object", "properties": {
-            "estimates": { "type": "array", "items": { "$ref": "#/components/schemas/PoseEstimate" } },
-            "model_version": { "type": "string" }, "frame_id": { "type": "string" },
-            "timings": { "$ref": "#/components/schemas/Timings" } } },
     })
 }

@@ -26,7 +26,7 @@ use crate::{
     error::ApiError,
     metrics::Metrics,
     store::{Store, StoreError, valid_category},
-    worker::{self, Job, WorkerConfig},
+    worker::{self, Request, WorkerConfig},
 };
 
 /// The version a category serves: what a worker needs to load its own copy.
@@ -47,7 +47,7 @@ pub struct Category {
     loaded: AtomicUsize,
     /// Why the model is not being served, when it is not.
     error: Mutex<Option<String>>,
-    queue: Sender<Job>,
+    queue: Sender<Request>,
     capacity: usize,
 }
 
@@ -81,18 +81,18 @@ impl Category {
         self.queue.len()
     }
 
-    /// Whether a new job would be refused right now (checked before decoding, to fail fast).
+    /// Whether a new request would be refused right now (checked before decoding, to fail fast).
     pub fn saturated(&self) -> bool {
         self.queue.len() >= self.capacity
     }
 
-    /// Admits a job or refuses it at once: the queue is bounded, never waited on.
-    pub fn submit(&self, job: Job) -> Result<(), ApiError> {
+    /// Admits a request or refuses it at once: the queue is bounded, never waited on.
+    pub fn submit(&self, request: Request) -> Result<(), ApiError> {
         if !self.ready() {
             let why = self.error().unwrap_or_else(|| "still loading".into());
             return Err(ApiError::unavailable(format!("the {} model is not ready: {why}", self.name)));
         }
-        match self.queue.try_send(job) {
+        match self.queue.try_send(request) {
             Ok(()) => Ok(()),
             Err(TrySendError::Full(_)) => Err(ApiError::unavailable(format!(
                 "overloaded: the {} queue is full ({} waiting); retry later",

@@ -6,9 +6,9 @@ use std::{
     time::{Duration, Instant},
 };
 
-use serde::Serialize;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, oneshot};
 use tracing::Instrument;
+use udapose_api::{ActivationEntry, VersionView, Versions};
 
 use crate::{
     api::{EstimateAnswer, EstimateInput, ImageInput, Timings},
@@ -19,7 +19,7 @@ use crate::{
     metrics::Metrics,
     registry::{Category, Registry},
     store::{Activation, valid_category},
-    worker::Job,
+    worker::Request,
 };
 
 /// Most boxes in one request.
@@ -142,8 +142,8 @@ impl Service {
         let (pixels, in_flight) = self.decode(input.image, deadline).await?;
         let decode_ms = decode_started.elapsed().as_secs_f64() * 1e3;
         let (reply, answer) = oneshot::channel();
-        let job = Job { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline, reply, in_flight };
-        category.submit(job)?;
+        let request = Request { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline, reply, in_flight };
+        category.submit(request)?;
         let queued = category.queued() as i64;
         self.metrics.queue_depth.with_label_values(&[category.name.as_str()]).set(queued);
         let answer =
@@ -221,27 +221,9 @@ fn kib(bytes: u64) -> u32 {
     u32::try_from(bytes.div_ceil(1024)).unwrap_or(u32::MAX)
 }
 
-/// One version of a category in the store.
-#[derive(Clone, Debug, Serialize)]
-pub struct VersionView {
-    pub version: String,
-    pub trained_as: String,
-    pub active: bool,
-    pub job_id: String,
-}
-
-/// One entry of the activation log.
-#[derive(Clone, Debug, Serialize)]
-pub struct ActivationView {
-    pub category: String,
-    pub generation: u64,
-    #[serde(flatten)]
-    pub activation: Activation,
-}
-
 impl Service {
     /// The category's versions and activation log (newest first).
-    pub async fn versions(&self, category: &str) -> Result<(Vec<VersionView>, Vec<ActivationView>), ApiError> {
+    pub async fn versions(&self, category: &str) -> Result<Versions, ApiError> {
         let name = self.category(category)?.name.clone();
         let store = self.registry.store().clone();
         blocking(move || {
@@ -252,7 +234,7 @@ impl Service {
                 .into_iter()
                 .map(|version| {
                     let manifest = store.manifest(&name, &version)?;
-                    let job_id = manifest.training.get("job_id").and_then(|j| j.as_str()).unwrap_or("").to_owned();
+                    let job_id = manifest.training.get("job_id").and_then(|j| j.as_str()).map(str::to_owned);
                     Ok(VersionView {
                         active: active.as_deref() == Some(version.as_str()),
                         trained_as: manifest.version,
@@ -261,11 +243,8 @@ impl Service {
                     })
                 })
                 .collect::<Result<_, ApiError>>()?;
-            let log = log
-                .into_iter()
-                .map(|(generation, activation)| ActivationView { category: name.clone(), generation, activation })
-                .collect();
-            Ok((versions, log))
+            let log = log.into_iter().map(|(generation, activation)| entry(&name, generation, activation)).collect();
+            Ok(Versions { versions, activations: log })
         })
         .await
     }
@@ -314,36 +293,57 @@ impl Service {
         blocking(move || jobs.get(&id)).await
     }
 
-    /// Activates `version` (`None`: rolls back to the head's previous version) and swaps the
-    /// serving workers to it.
+    /// Activates `version` and swaps the serving workers to it.
     pub async fn activate(
         &self,
         category: &str,
-        version: Option<String>,
+        version: String,
         reason: String,
         expected_generation: Option<u64>,
         actor: &str,
-    ) -> Result<ActivationView, ApiError> {
+    ) -> Result<ActivationEntry, ApiError> {
+        self.switch(category, Switch::To(version), reason, expected_generation, actor).await
+    }
+
+    /// Re-activates what the head entry of the log says precedes it (rollbacks walk back).
+    pub async fn rollback(
+        &self,
+        category: &str,
+        reason: String,
+        expected_generation: Option<u64>,
+        actor: &str,
+    ) -> Result<ActivationEntry, ApiError> {
+        self.switch(category, Switch::Back, reason, expected_generation, actor).await
+    }
+
+    async fn switch(
+        &self,
+        category: &str,
+        to: Switch,
+        reason: String,
+        expected_generation: Option<u64>,
+        actor: &str,
+    ) -> Result<ActivationEntry, ApiError> {
         let name = self.category(category)?.name.clone();
         let store = self.registry.store().clone();
         let actor = actor.to_owned();
-        let view = blocking(move || {
-            let generation = match version {
-                Some(v) => store.activate(&name, &v, &actor, &reason, expected_generation, None)?,
-                None => store.rollback(&name, &actor, &reason, expected_generation)?,
+        let entry = blocking(move || {
+            let generation = match to {
+                Switch::To(v) => store.activate(&name, &v, &actor, &reason, expected_generation, None)?,
+                Switch::Back => store.rollback(&name, &actor, &reason, expected_generation)?,
             };
             let (generation, activation) = store
                 .activations(&name)?
                 .into_iter()
                 .find(|(g, _)| *g == generation)
                 .ok_or_else(|| ApiError::Internal(format!("generation {generation} vanished")))?;
-            Ok(ActivationView { category: name, generation, activation })
+            Ok(entry(&name, generation, activation))
         })
         .await?;
-        tracing::info!(category = %view.category, version = %view.activation.version, generation = view.generation,
-            actor = %view.activation.actor, "activated");
+        tracing::info!(category = %entry.category, version = %entry.version, generation = entry.generation,
+            actor = %entry.actor, "activated");
         self.registry.refresh();
-        Ok(view)
+        Ok(entry)
     }
 
     /// Buffers one target image (decoding off the runtime).
@@ -412,4 +412,24 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + S
 
 fn truncate(s: &str, n: usize) -> String {
     s.chars().take(n).collect()
+}
+
+/// Where an activation goes.
+enum Switch {
+    To(String),
+    Back,
+}
+
+/// An activation-log entry as the API shows it.
+fn entry(category: &str, generation: u64, a: Activation) -> ActivationEntry {
+    ActivationEntry {
+        category: category.to_owned(),
+        generation,
+        version: a.version,
+        previous: a.previous,
+        actor: a.actor,
+        reason: a.reason,
+        time: a.time,
+        job_id: a.job_id,
+    }
 }

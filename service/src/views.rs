@@ -1,37 +1,9 @@
-//! What the model routes answer, for any transport: a category's summary and description.
+//! What the model routes answer, for any transport: a category's summary and description (the
+//! contract's types; the gRPC adapter converts them, HTTP sends them as they are).
 
-use udapose_engine::checkpoint::Manifest;
+pub use udapose_api::{ModelDescription, ModelSummary};
 
 use crate::registry::Category;
-
-/// One served category, as `ListModels` and `GET /v1/models` list it.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ModelSummary {
-    pub category: String,
-    /// The active version; `None` before one is loaded.
-    pub version: Option<String>,
-    pub ready: bool,
-    /// Why the category cannot serve, when it cannot.
-    pub error: Option<String>,
-}
-
-/// A category's active model in full, as `DescribeModel` and `GET /v1/models/{category}`
-/// describe it.
-#[derive(Clone, Debug)]
-pub struct ModelDescription {
-    pub summary: ModelSummary,
-    pub generation: u64,
-    /// The version the model was trained as (its manifest's `version`).
-    pub trained_as: String,
-    pub backbone: String,
-    pub feature_dim: usize,
-    pub vertices: usize,
-    /// `[H, W]`.
-    pub crop: [usize; 2],
-    /// The cuboid's `min` then `max` corner.
-    pub cuboid: Vec<f64>,
-    pub manifest: Option<Manifest>,
-}
 
 pub fn summary(c: &Category) -> ModelSummary {
     ModelSummary {
@@ -45,15 +17,20 @@ pub fn summary(c: &Category) -> ModelSummary {
 pub fn describe(c: &Category) -> ModelDescription {
     let active = c.active();
     let m = active.as_ref().map(|a| &a.manifest);
+    let s = summary(c);
     ModelDescription {
-        summary: summary(c),
+        category: s.category,
+        version: s.version.unwrap_or_default(),
+        ready: s.ready,
         generation: active.as_ref().map_or(0, |a| a.generation),
         trained_as: m.map(|m| m.version.clone()).unwrap_or_default(),
         backbone: m.map(|m| m.backbone.name().to_string()).unwrap_or_default(),
-        feature_dim: m.map_or(0, |m| m.feature_dim),
-        vertices: m.map_or(0, |m| m.vertices),
-        crop: m.map_or([0, 0], |m| m.crop),
+        feature_dim: m.map_or(0, |m| m.feature_dim as u32),
+        vertices: m.map_or(0, |m| m.vertices as u32),
+        crop_height: m.map_or(0, |m| m.crop[0] as u32),
+        crop_width: m.map_or(0, |m| m.crop[1] as u32),
         cuboid: m.map(|m| m.cuboid.min.iter().chain(&m.cuboid.max).copied().collect()).unwrap_or_default(),
-        manifest: m.cloned(),
+        error: s.error.unwrap_or_default(),
+        manifest: m.and_then(|m| serde_json::to_value(m).ok()).unwrap_or_default(),
     }
 }

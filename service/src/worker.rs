@@ -1,4 +1,4 @@
-//! Inference workers: threads that own their tch model copies, take jobs from their category's
+//! Inference workers: threads that own their tch model copies, take requests from their category's
 //! bounded queue, batch them (up to `max_batch` crops, waiting at most `max_delay` after the
 //! first), then run the backbone and the solver per crop ([`Estimator`]): a batch amortises the
 //! queue and the model switch, not the backbone (see `infer`).
@@ -33,31 +33,31 @@ pub struct WorkerConfig {
     pub workers: usize,
     /// Most crops in one backbone batch (1: no batching, bit-identical answers).
     pub max_batch: usize,
-    /// How long the first job of a batch waits for company.
+    /// How long the first request of a batch waits for company.
     pub max_delay: Duration,
-    /// Jobs that may wait per category before requests are refused.
+    /// Requests that may wait per category before more are refused.
     pub queue_depth: usize,
     pub device: Device,
 }
 
 /// One request's work: a decoded image and its boxes.
-pub struct Job {
+pub struct Request {
     pub pixels: Pixels,
     pub boxes: Vec<[f64; 4]>,
     pub enqueued: Instant,
     pub deadline: Instant,
     pub reply: oneshot::Sender<Result<WorkerAnswer, ApiError>>,
-    /// The image's share of the in-flight budget, given back when the job is dropped.
+    /// The image's share of the in-flight budget, given back when the request is dropped.
     pub in_flight: tokio::sync::OwnedSemaphorePermit,
 }
 
-impl Job {
+impl Request {
     fn crops(&self) -> usize {
         self.boxes.len().max(1)
     }
 }
 
-/// What a worker computed for one job.
+/// What a worker computed for one request.
 #[derive(Debug)]
 pub struct WorkerAnswer {
     pub estimates: Vec<PoseAnswer>,
@@ -85,7 +85,7 @@ impl Loaded {
 
 pub fn spawn(
     category: Arc<Category>,
-    rx: Receiver<Job>,
+    rx: Receiver<Request>,
     config: WorkerConfig,
     metrics: Arc<Metrics>,
     index: usize,
@@ -101,7 +101,7 @@ pub fn spawn(
 /// the next request rather than by it.
 const IDLE_CHECK: Duration = Duration::from_millis(200);
 
-fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: &Metrics) {
+fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metrics: &Metrics) {
     let Some(mut loaded) = load_active(category, config.device, None) else { return };
     category.worker_loaded();
     let depth = metrics.queue_depth.with_label_values(&[category.name.as_str()]);
@@ -110,7 +110,7 @@ fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: 
     let mut failed = None;
     loop {
         let first = match rx.recv_timeout(IDLE_CHECK) {
-            Ok(job) => Some(job),
+            Ok(request) => Some(request),
             Err(RecvTimeoutError::Timeout) => None,
             Err(RecvTimeoutError::Disconnected) => return,
         };
@@ -128,7 +128,7 @@ fn run(category: &Category, rx: &Receiver<Job>, config: &WorkerConfig, metrics: 
         let Some(first) = first else { continue };
         let batch = collect(rx, first, config);
         depth.set(rx.len() as i64);
-        let crops: usize = batch.iter().map(Job::crops).sum();
+        let crops: usize = batch.iter().map(Request::crops).sum();
         batch_sizes.observe(crops as f64);
         process(&loaded, batch);
     }
@@ -156,16 +156,16 @@ fn load_active(category: &Category, device: Device, current: Option<&Loaded>) ->
     }
 }
 
-/// The first job plus whatever else arrives within `max_delay`, up to `max_batch` crops.
-fn collect(rx: &Receiver<Job>, first: Job, config: &WorkerConfig) -> Vec<Job> {
+/// The first request plus whatever else arrives within `max_delay`, up to `max_batch` crops.
+fn collect(rx: &Receiver<Request>, first: Request, config: &WorkerConfig) -> Vec<Request> {
     let mut crops = first.crops();
     let mut batch = vec![first];
     let until = Instant::now() + config.max_delay;
     while crops < config.max_batch {
         match rx.recv_deadline(until) {
-            Ok(job) => {
-                crops += job.crops();
-                batch.push(job);
+            Ok(request) => {
+                crops += request.crops();
+                batch.push(request);
             }
             Err(_) => break,
         }
@@ -173,32 +173,32 @@ fn collect(rx: &Receiver<Job>, first: Job, config: &WorkerConfig) -> Vec<Job> {
     batch
 }
 
-/// A job whose crops are cut, waiting for the backbone.
+/// A request whose crops are cut, waiting for the backbone.
 struct Pending {
-    job: Job,
+    request: Request,
     crops: Vec<Crop>,
     queue_ms: f64,
     crop_ms: f64,
 }
 
-fn process(loaded: &Loaded, batch: Vec<Job>) {
+fn process(loaded: &Loaded, batch: Vec<Request>) {
     let mut pending = Vec::with_capacity(batch.len());
-    for job in batch {
+    for request in batch {
         let started = Instant::now();
-        let queue_ms = ms(started - job.enqueued);
-        if job.reply.is_closed() {
+        let queue_ms = ms(started - request.enqueued);
+        if request.reply.is_closed() {
             continue; // the caller gave up (cancelled, timed out): nothing to compute
         }
-        if started > job.deadline {
-            let _ = job.reply.send(Err(ApiError::DeadlineExceeded(format!(
+        if started > request.deadline {
+            let _ = request.reply.send(Err(ApiError::DeadlineExceeded(format!(
                 "the deadline passed after {queue_ms:.0} ms in the queue; not computed"
             ))));
             continue;
         }
-        match cut(loaded, &job) {
-            Ok(crops) => pending.push(Pending { job, crops, queue_ms, crop_ms: ms(started.elapsed()) }),
+        match cut(loaded, &request) {
+            Ok(crops) => pending.push(Pending { request, crops, queue_ms, crop_ms: ms(started.elapsed()) }),
             Err(e) => {
-                let _ = job.reply.send(Err(e));
+                let _ = request.reply.send(Err(e));
             }
         }
     }
@@ -227,18 +227,22 @@ fn process(loaded: &Loaded, batch: Vec<Job>) {
             solver_ms,
             batch_size,
         });
-        let _ = p.job.reply.send(reply);
+        let _ = p.request.reply.send(reply);
     }
 }
 
-/// The job's crops at the model's size.
-fn cut(loaded: &Loaded, job: &Job) -> Result<Vec<Crop>, ApiError> {
-    let image = Rgb8Image::new(&job.pixels.rgb8, job.pixels.width, job.pixels.height)?;
+/// The request's crops at the model's size.
+fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
+    let image = Rgb8Image::new(&request.pixels.rgb8, request.pixels.width, request.pixels.height)?;
     let size = loaded.active.manifest.crop;
-    if job.boxes.is_empty() {
+    if request.boxes.is_empty() {
         return Ok(vec![input::crop(&image, None, size)?]);
     }
-    job.boxes.iter().map(|&[x0, y0, x1, y1]| Ok(input::crop(&image, Some(CropBox { x0, y0, x1, y1 }), size)?)).collect()
+    request
+        .boxes
+        .iter()
+        .map(|&[x0, y0, x1, y1]| Ok(input::crop(&image, Some(CropBox { x0, y0, x1, y1 }), size)?))
+        .collect()
 }
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;

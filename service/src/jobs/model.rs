@@ -1,34 +1,17 @@
-//! A job's records: what it runs on, its history, how the API shows it, and its settings.
+//! A job's records: what it runs on and its settings; its history and how the API shows it
+//! (`JobEvent`, `JobView`) are the contract's types, persisted as they are shown.
 
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 use tch::Device;
+pub use udapose_api::{JobEvent, JobState, JobView};
 use udapose_engine::{
     adapt::AdaptConfig,
-    gate::{self, Criterion, GateConfig},
+    gate::{self, GateConfig},
 };
 
 use crate::{buffer::AckStatus, decode::DecodeLimits};
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
-pub enum JobState {
-    Queued,
-    Running,
-    Validating,
-    Activated,
-    Rejected,
-    Superseded,
-    Failed,
-    Cancelled,
-}
-
-impl JobState {
-    pub fn terminal(self) -> bool {
-        !matches!(self, JobState::Queued | JobState::Running | JobState::Validating)
-    }
-}
 
 /// Settings a job may override; unset: the server's defaults.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -52,44 +35,6 @@ pub struct JobSpec {
     pub train: Vec<String>,
     pub held_out: Vec<String>,
     pub created: f64,
-}
-
-/// One step of a job's history.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct JobEvent {
-    pub job_id: String,
-    pub seq: u64,
-    pub state: JobState,
-    pub time: f64,
-    pub message: String,
-    pub round: u32,
-    pub max_rounds: u32,
-    pub fired_ratio: f64,
-    pub pose_change_median_deg: Option<f64>,
-    pub images_used: u32,
-    pub images_held_out: u32,
-    pub eta_seconds: f64,
-    pub gate: Vec<Criterion>,
-    /// The candidate version, once saved.
-    pub version: String,
-}
-
-/// A job as the API shows it.
-#[derive(Clone, Debug, Serialize)]
-pub struct JobView {
-    pub job_id: String,
-    pub category: String,
-    pub state: JobState,
-    pub source_version: String,
-    pub source_generation: u64,
-    pub version: String,
-    pub created: f64,
-    pub updated: f64,
-    pub images_used: u32,
-    pub images_held_out: u32,
-    pub reason: String,
-    pub client_job_id: String,
-    pub last_event: JobEvent,
 }
 
 /// Why a target image was not stored.

@@ -170,7 +170,7 @@ impl Jobs {
         if !decision.passed && self.config.enforce_gate {
             self.append(id, JobState::Rejected, |e| {
                 e.message = format!("the gate kept {} inactive: {}", spec.version, decision.reason());
-                e.gate = decision.criteria.clone();
+                e.gate = decision.criteria.iter().map(criterion).collect();
             })?;
             return Ok(());
         }
@@ -188,7 +188,7 @@ impl Jobs {
                 self.registry.refresh();
                 self.append(id, JobState::Activated, |e| {
                     e.message = format!("activated {} as generation {generation}", spec.version);
-                    e.gate = decision.criteria.clone();
+                    e.gate = decision.criteria.iter().map(criterion).collect();
                 })?;
             }
             Err(StoreError::Conflict { found, .. }) => {
@@ -198,7 +198,7 @@ impl Jobs {
                         "passed the gate, but generation {found} was activated since the job started from {}",
                         spec.source_generation
                     );
-                    e.gate = decision.criteria.clone();
+                    e.gate = decision.criteria.iter().map(criterion).collect();
                 })?;
             }
             Err(e) => return Err(e.into()),
@@ -222,4 +222,10 @@ impl Jobs {
 
 pub(super) fn is_cancelled(e: &anyhow::Error) -> bool {
     matches!(e.downcast_ref::<EngineError>(), Some(EngineError::Cancelled))
+}
+
+/// A gate criterion as the job's events show it.
+fn criterion(c: &gate::Criterion) -> udapose_api::GateCriterion {
+    let gate::Criterion { name, active, candidate, threshold, passed, detail } = c.clone();
+    udapose_api::GateCriterion { name, active, candidate, threshold, passed, detail }
 }
