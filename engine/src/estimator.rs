@@ -11,7 +11,9 @@ use crate::checkpoint::{Model, NeuralMesh};
 use crate::error::{EngineError, Result};
 use crate::input::{Crop, CropBox};
 use crate::mesh::Mesh;
-use crate::solver::{Estimate, FeatureMap, MeshModel, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid};
+use crate::solver::{
+    Estimate, FeatureMap, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid,
+};
 
 /// One image's backbone features: `dim × height × width`, row-major, on the host.
 #[derive(Clone, Debug, PartialEq)]
@@ -64,7 +66,7 @@ impl PoseSolver {
         config: SolverConfig,
     ) -> Result<Self> {
         config.validate()?;
-        MeshModel::new(&mesh, &vertex_features, &clutter, dim)?;
+        NeuralMeshView::new(&mesh, &vertex_features, &clutter, dim)?;
         Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config })
     }
 
@@ -102,8 +104,8 @@ impl PoseSolver {
     }
 
     /// The solver's view of the mesh and its features (what the reference solver takes too).
-    pub fn mesh_model(&self) -> Result<MeshModel<'_>> {
-        MeshModel::new(&self.mesh, &self.vertex_features, &self.clutter, self.dim)
+    pub fn mesh_model(&self) -> Result<NeuralMeshView<'_>> {
+        NeuralMeshView::new(&self.mesh, &self.vertex_features, &self.clutter, self.dim)
     }
 
     /// One image prepared for pose evaluation (`S = C·F` and the clutter map).

@@ -4,7 +4,7 @@
 use udapose_engine::camera::fit_distance;
 use udapose_engine::raster::NO_FACE;
 use udapose_engine::solver::{
-    AdamConfig, FeatureMap, MeshModel, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch, SolverConfig,
+    AdamConfig, FeatureMap, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch, SolverConfig,
     grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
 };
 use udapose_engine::{Camera, EngineError, Pose, Rasterizer, View, rotation_error};
@@ -343,18 +343,18 @@ fn bad_inputs_are_typed_errors() {
 
     // Mesh models.
     let vf = &m.vertex_features;
-    assert!(invalid(MeshModel::new(&m.mesh, &vf[DIM..], &m.clutter, DIM)));
-    assert!(invalid(MeshModel::new(&m.mesh, vf, &[], DIM)));
-    assert!(invalid(MeshModel::new(&m.mesh, vf, &m.clutter[1..], DIM)));
-    assert!(invalid(MeshModel::new(&m.mesh, vf, &m.clutter, 0)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, &vf[DIM..], &m.clutter, DIM)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, vf, &[], DIM)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, vf, &m.clutter[1..], DIM)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, vf, &m.clutter, 0)));
     let mut bad_c = vf.clone();
     bad_c[5] = f32::NAN;
-    assert!(invalid(MeshModel::new(&m.mesh, &bad_c, &m.clutter, DIM)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, &bad_c, &m.clutter, DIM)));
     let mut bad_b = m.clutter.clone();
     bad_b[0] = f32::NEG_INFINITY;
-    assert!(invalid(MeshModel::new(&m.mesh, vf, &bad_b, DIM)));
+    assert!(invalid(NeuralMeshView::new(&m.mesh, vf, &bad_b, DIM)));
     let two = [m.clutter.clone(), m.clutter.clone()].concat();
-    assert!(MeshModel::new(&m.mesh, vf, &two, DIM).is_ok(), "N = 2 clutter vectors");
+    assert!(NeuralMeshView::new(&m.mesh, vf, &two, DIM).is_ok(), "N = 2 clutter vectors");
 
     // Features that do not fit the crop, the stride or the model.
     let model = m.model().unwrap();

@@ -1,7 +1,7 @@
 //! `udapose-lab train`: the source model (METHOD.md §5) from a SynCar-OOD dataset, resumable
 //! from its last epoch, with a validation curve on `source/val`.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -10,14 +10,14 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 use tch::nn::OptimizerConfig;
-use tch::{Device, Kind, Tensor, nn};
-use udapose_engine::backbone::{Arch, Backbone, DECODER_GROUP, TRUNK_GROUP};
-use udapose_engine::checkpoint::{self, Manifest, NeuralMesh};
+use tch::{Device, Tensor, nn};
+use udapose_engine::backbone::{Arch, Backbone};
+use udapose_engine::checkpoint::{self, Manifest};
 use udapose_engine::estimator::{self, PoseSolver, clutter_mean};
 use udapose_engine::mesh::TARGET_VERTICES;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
-use udapose_engine::train::{SourceTraining, TrainConfig, VertexStatistics};
+use udapose_engine::train::{self, LearningRates, Progress, Schedule, SourceTraining, TrainConfig, VertexStatistics};
 use udapose_engine::{Camera, Cuboid, PoseMetrics, pose_error};
 use udapose_lab::augment::Photometric;
 use udapose_lab::datasets::syncar::SyncarSplit;
@@ -49,7 +49,7 @@ pub struct Args {
     trunk_lr: Option<f64>,
     /// Learning-rate schedule: `cosine` (linear warm-up, then cosine decay to 1% of the peak
     /// at the last step) or `constant` (the recipe of the first shipped model).
-    #[arg(long, value_enum, default_value_t = Schedule::Cosine)]
+    #[arg(long, default_value = "cosine")]
     schedule: Schedule,
     /// Warm-up steps of the cosine schedule.
     #[arg(long, default_value_t = 200)]
@@ -79,34 +79,6 @@ pub struct Args {
     val_images: usize,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Schedule {
-    Cosine,
-    Constant,
-}
-
-/// The learning-rate factor at `step` of `total`: warm-up from 1/warmup to 1, then cosine
-/// down to 1%.
-fn lr_factor(schedule: Schedule, step: usize, total: usize, warmup: usize) -> f64 {
-    if schedule == Schedule::Constant {
-        return 1.0;
-    }
-    if step < warmup {
-        return (step + 1) as f64 / warmup as f64;
-    }
-    let t = (step - warmup) as f64 / (total.saturating_sub(warmup)).max(1) as f64;
-    0.01 + 0.99 * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
-}
-
-/// What a run has done so far; saved with each epoch's weights.
-#[derive(serde::Serialize, serde::Deserialize, Default)]
-struct Progress {
-    epoch: usize,
-    seconds: f64,
-    curve: Vec<serde_json::Value>,
-}
-
 pub fn run(args: &Args) -> Result<()> {
     if args.out.exists() {
         bail!("{} already exists (model versions are immutable)", args.out.display());
@@ -118,10 +90,13 @@ pub fn run(args: &Args) -> Result<()> {
 
     let mut vs = nn::VarStore::new(device);
     let (backbone, freeze_stages, frozen_blocks) = build_backbone(args, &mut vs)?;
-    let mut training = SourceTraining::new(TrainConfig::default(), mesh.clone(), camera, 128, device);
+    let mut training = SourceTraining::new(TrainConfig::default(), mesh, camera, 128, device);
     let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("{}.work", args.out.display())));
     std::fs::create_dir_all(&work)?;
-    let mut progress = resume(&work, &mut vs, &mut training)?;
+    let mut progress = train::state::resume(&work, &mut vs, &mut training)?;
+    if progress.epoch > 0 {
+        eprintln!("resuming from {} after epoch {}", work.display(), progress.epoch);
+    }
 
     let train = SyncarSplit::open(&args.data, "source", "train")?;
     let val = SyncarSplit::open(&args.data, "source", "val")?;
@@ -138,25 +113,26 @@ pub fn run(args: &Args) -> Result<()> {
         freeze_stages,
         frozen_blocks,
     };
-    let (trunk_lr, augment) = (recipe.trunk_lr, &recipe.augment);
     let steps_per_epoch = loader.len().div_ceil(args.batch);
-    let total_steps = steps_per_epoch * args.epochs;
+    let lr = LearningRates {
+        schedule: args.schedule,
+        decoder: args.lr,
+        trunk: recipe.trunk_lr,
+        warmup_steps: args.warmup_steps,
+        total_steps: steps_per_epoch * args.epochs,
+    };
     for epoch in progress.epoch..args.epochs {
         let started = Instant::now();
         let bar = bar(loader.len() as u64, &format!("epoch {}/{}", epoch + 1, args.epochs));
         let mut loss_sum = (0.0, 0usize);
         for (i, batch) in loader.epoch().enumerate() {
             let batch = batch?;
-            let f = lr_factor(args.schedule, epoch * steps_per_epoch + i, total_steps, args.warmup_steps);
-            opt.set_lr_group(TRUNK_GROUP, trunk_lr * f);
-            opt.set_lr_group(DECODER_GROUP, args.lr * f);
+            lr.apply(&mut opt, epoch * steps_per_epoch + i);
             let mut images = images_tensor(&batch, device);
-            if let Some(augment) = augment {
+            if let Some(augment) = &recipe.augment {
                 images = augment.apply(&images, &mut rng);
             }
-            let features = backbone.forward_t(&udapose_engine::backbone::preprocess(&images)?, true);
-            let (loss, stats) = training.step(&features, &batch.poses, &mut rng)?;
-            opt.backward_step(&loss);
+            let stats = training.backward_step(&backbone, &mut opt, &images, &batch.poses, &mut rng)?;
             loss_sum = (loss_sum.0 + stats.loss, loss_sum.1 + 1);
             bar.set_message(format!("loss {:.3}", loss_sum.0 / loss_sum.1 as f64));
             bar.inc(batch.len() as u64);
@@ -168,18 +144,10 @@ pub fn run(args: &Args) -> Result<()> {
         let point = json!({"epoch": epoch + 1, "loss": loss_sum.0 / loss_sum.1.max(1) as f64, "val": metrics, "seconds": progress.seconds});
         eprintln!("epoch {}: {point}", epoch + 1);
         progress.curve.push(point);
-        save_state(&work, &vs, &training, &progress)?;
+        train::state::save(&work, &vs, &training, &progress)?;
     }
     let (tau, r_bar) = statistics(&backbone, &training, &train, args.batch)?;
-    let vertices = mesh.vertices().len() as i64;
-    let neural_mesh = NeuralMesh {
-        mesh,
-        vertex_features: training.vertex_features.shallow_clone(),
-        clutter: clutter_mean(&training.clutter),
-        kappa: Tensor::full([vertices], 1.0 / training.config.temperature, (Kind::Float, device)),
-        tau,
-        r_bar,
-    };
+    let neural_mesh = training.neural_mesh(tau, r_bar);
     let manifest = manifest(args, dataset, neural_mesh.mesh.vertices().len(), &recipe, &progress, device);
     checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
     eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
@@ -325,74 +293,9 @@ fn statistics(
     for b in loader.epoch() {
         let b = b?;
         let images = images_tensor(&b, training.vertex_features.device());
-        let x = udapose_engine::backbone::preprocess(&images)?;
-        let features = tch::no_grad(|| backbone.forward_t(&x, false));
-        stats.add(training, &features, &b.poses)?;
+        stats.add_images(training, backbone, &images, &b.poses)?;
         bar.inc(b.len() as u64);
     }
     bar.finish_and_clear();
     Ok(stats.finish(0.1))
-}
-
-const STATE: &str = "state.safetensors";
-const PROGRESS: &str = "progress.json";
-
-/// Loads the latest epoch checkpoint of `work`, if any.
-fn resume(work: &Path, vs: &mut nn::VarStore, training: &mut SourceTraining) -> Result<Progress> {
-    let Some(dir) = latest_epoch(work)? else { return Ok(Progress::default()) };
-    let progress: Progress = serde_json::from_str(&std::fs::read_to_string(dir.join(PROGRESS))?)?;
-    let tensors: std::collections::BTreeMap<String, Tensor> =
-        Tensor::read_safetensors(dir.join(STATE))?.into_iter().collect();
-    tch::no_grad(|| -> Result<()> {
-        for (name, mut var) in vs.variables() {
-            let saved =
-                tensors.get(&format!("backbone.{name}")).with_context(|| format!("{}: no {name}", dir.display()))?;
-            var.f_copy_(saved)?;
-        }
-        training.vertex_features = tensors.get("vertex_features").context("no vertex_features")?.shallow_clone();
-        training.clutter.f_copy_(tensors.get("clutter").context("no clutter")?)?;
-        Ok(())
-    })?;
-    eprintln!("resuming from {} (epoch {})", dir.display(), progress.epoch);
-    Ok(progress)
-}
-
-fn latest_epoch(work: &Path) -> Result<Option<PathBuf>> {
-    let mut epochs: Vec<(usize, PathBuf)> = std::fs::read_dir(work)?
-        .filter_map(|e| e.ok())
-        .filter_map(|e| {
-            let n = e.file_name().to_str()?.strip_prefix("epoch-")?.parse().ok()?;
-            e.path().join(PROGRESS).is_file().then(|| (n, e.path()))
-        })
-        .collect();
-    epochs.sort();
-    Ok(epochs.pop().map(|(_, p)| p))
-}
-
-/// Writes `epoch-<n>/` (weights, banks, progress last) under a temporary name, renames it into
-/// place, and keeps the two newest.
-fn save_state(work: &Path, vs: &nn::VarStore, training: &SourceTraining, progress: &Progress) -> Result<()> {
-    let dir = work.join(format!("epoch-{:04}", progress.epoch));
-    let tmp = work.join(format!(".epoch-{:04}.tmp", progress.epoch));
-    let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp)?;
-    let mut tensors: Vec<(String, Tensor)> =
-        vs.variables().into_iter().map(|(n, t)| (format!("backbone.{n}"), t)).collect();
-    tensors.push(("vertex_features".into(), training.vertex_features.shallow_clone()));
-    tensors.push(("clutter".into(), training.clutter.shallow_clone()));
-    Tensor::write_safetensors(&tensors, tmp.join(STATE))?;
-    std::fs::File::open(tmp.join(STATE))?.sync_all()?;
-    udapose_lab::atomic::write_atomic(&tmp.join(PROGRESS), serde_json::to_string(progress)?.as_bytes())?;
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::rename(&tmp, &dir)?;
-    let mut old: Vec<PathBuf> = std::fs::read_dir(work)?
-        .filter_map(|e| e.ok())
-        .map(|e| e.path())
-        .filter(|p| p.file_name().and_then(|n| n.to_str()).is_some_and(|n| n.starts_with("epoch-")))
-        .collect();
-    old.sort();
-    for p in old.iter().rev().skip(2) {
-        std::fs::remove_dir_all(p)?;
-    }
-    Ok(())
 }

@@ -30,7 +30,7 @@ use udapose_engine::error::{EngineError, Result};
 use udapose_engine::mesh::Mesh;
 use udapose_engine::raster::{NO_FACE, Rasterizer};
 use udapose_engine::solver::{
-    AdamConfig, Estimate, FeatureMap, Hypothesis, MeshModel, Problem, ScoredPose, SolverConfig, canonical,
+    AdamConfig, Estimate, FeatureMap, Hypothesis, NeuralMeshView, Problem, ScoredPose, SolverConfig, canonical,
     multi_pose_init,
 };
 
@@ -79,7 +79,7 @@ pub struct ReferenceProblem<'a> {
 impl<'a> ReferenceProblem<'a> {
     /// Prepares an image whose crop camera is `crop` (`Camera::for_crop(H, W)`); `features`
     /// must be on `crop.at_stride(stride)`'s grid (checked as [`Problem::new`] does).
-    pub fn new(model: &MeshModel<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
+    pub fn new(model: &NeuralMeshView<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
         let grid = crop.at_stride(stride)?;
         if (features.height(), features.width()) != (grid.height, grid.width) {
             return Err(EngineError::InvalidInput(format!(
@@ -290,7 +290,7 @@ pub fn solve(problem: &ReferenceProblem, inits: &[ScoredPose], config: &Referenc
 /// The reference render and compare: udapose's [`multi_pose_init`] (same grid, fit distances and
 /// `k` as `solver`), then [`solve`] from those poses.
 pub fn render_and_compare(
-    model: &MeshModel,
+    model: &NeuralMeshView,
     features: &FeatureMap,
     crop: &Camera,
     solver: &SolverConfig,

@@ -14,7 +14,7 @@ use udapose_engine::error::{EngineError, Result};
 use udapose_engine::mesh::{Cuboid, Mesh, TARGET_VERTICES};
 use udapose_engine::raster::{NO_FACE, Rasterizer};
 
-use udapose_engine::solver::{FeatureMap, MeshModel};
+use udapose_engine::solver::{FeatureMap, NeuralMeshView};
 
 /// The SynCar-OOD source car cuboid (METHOD.md §3): 0.433 × 0.992 × 0.270.
 pub const CAR_DIMENSIONS: [f64; 3] = [0.433, 0.992, 0.270];
@@ -102,8 +102,8 @@ impl SyntheticModel {
         Ok(SyntheticModel { mesh, dim, vertex_features, clutter })
     }
 
-    pub fn model(&self) -> Result<MeshModel<'_>> {
-        MeshModel::new(&self.mesh, &self.vertex_features, &self.clutter, self.dim)
+    pub fn model(&self) -> Result<NeuralMeshView<'_>> {
+        NeuralMeshView::new(&self.mesh, &self.vertex_features, &self.clutter, self.dim)
     }
 }
 

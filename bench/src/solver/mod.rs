@@ -18,7 +18,7 @@ use udapose_engine::camera::Camera;
 use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::estimator::{self, Features, PoseSolver};
 use udapose_engine::metrics::paired_bootstrap;
-use udapose_engine::solver::{AdamConfig, Estimate, MeshModel, Optimizer, SolverConfig};
+use udapose_engine::solver::{AdamConfig, Estimate, NeuralMeshView, Optimizer, SolverConfig};
 use udapose_engine::{Pose, pose_error};
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
@@ -302,7 +302,7 @@ fn udapose_phase(
 /// Phase 3: the reference on the same features (after a 5-step warm-up).
 fn reference_phase(
     solver: &PoseSolver,
-    mesh_model: &MeshModel,
+    mesh_model: &NeuralMeshView,
     reference_config: &ReferenceConfig,
     images: &[Image],
 ) -> Result<Vec<(Solved, Inits)>> {

@@ -169,14 +169,14 @@ impl<'a> FeatureMap<'a> {
 /// A neural mesh as the solver sees it: geometry, vertex features `C` (R × D, row-major, unit
 /// norm) and clutter vectors `B` (N × D, N ≥ 1; NeMo uses N = 1, the normalised bank mean).
 #[derive(Clone, Copy, Debug)]
-pub struct MeshModel<'a> {
+pub struct NeuralMeshView<'a> {
     mesh: &'a Mesh,
     vertex_features: &'a [f32],
     clutter: &'a [f32],
     dim: usize,
 }
 
-impl<'a> MeshModel<'a> {
+impl<'a> NeuralMeshView<'a> {
     pub fn new(mesh: &'a Mesh, vertex_features: &'a [f32], clutter: &'a [f32], dim: usize) -> Result<Self> {
         let bad = |m: String| Err(EngineError::InvalidInput(m));
         if dim == 0 {
@@ -192,7 +192,7 @@ impl<'a> MeshModel<'a> {
         if vertex_features.iter().chain(clutter).any(|v| !v.is_finite()) {
             return bad("non-finite vertex or clutter feature".into());
         }
-        Ok(MeshModel { mesh, vertex_features, clutter, dim })
+        Ok(NeuralMeshView { mesh, vertex_features, clutter, dim })
     }
 
     pub fn mesh(&self) -> &'a Mesh {
@@ -242,7 +242,7 @@ const GEMM_PIXELS_PER_TASK: usize = 128;
 impl<'a> Problem<'a> {
     /// Prepares an image whose crop camera is `crop` (`Camera::for_crop(H, W)`); `features`
     /// must be on `crop.at_stride(stride)`'s grid.
-    pub fn new(model: &MeshModel<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
+    pub fn new(model: &NeuralMeshView<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
         let grid = crop.at_stride(stride)?;
         if grid.width == 0 || grid.height == 0 {
             return Err(EngineError::EmptyImage { width: grid.width, height: grid.height });
@@ -487,7 +487,7 @@ impl Estimate {
 /// Render and compare (METHOD.md §6): the pose of `model` in the image whose features are
 /// `features`, seen through the crop camera `crop` (`Camera::for_crop(H, W)`).
 pub fn render_and_compare(
-    model: &MeshModel,
+    model: &NeuralMeshView,
     features: &FeatureMap,
     crop: &Camera,
     config: &SolverConfig,

@@ -2,12 +2,21 @@
 //! feature towards its own vertex feature and away from the other vertices (except its
 //! neighbours) and from clutter, with `C` a momentum memory bank and a FIFO clutter bank.
 
+pub mod schedule;
+pub mod state;
+
+pub use schedule::{LearningRates, Schedule};
+pub use state::Progress;
+
 use rand::Rng;
 use rand::seq::index::sample;
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Kind, Tensor, nn};
 
+use crate::backbone::{self, Backbone};
 use crate::camera::{Camera, Pose};
+use crate::checkpoint::NeuralMesh;
 use crate::error::{EngineError, Result};
+use crate::estimator::clutter_mean;
 use crate::mesh::Mesh;
 use crate::raster::Rasterizer;
 
@@ -146,6 +155,38 @@ impl SourceTraining {
         tch::no_grad(|| training.clutter.narrow(0, 0, n).copy_(&clutter.narrow(0, 0, n)));
         (training.clutter_next, training.clutter_filled) = (n % training.clutter.size()[0], n);
         training
+    }
+
+    /// One optimiser step on a batch of images (`N×3×H×W` in [0, 1]) at their ground-truth
+    /// poses: the backbone's features in training mode, the loss, its backward pass, and the
+    /// memory banks' updates.
+    pub fn backward_step(
+        &mut self,
+        backbone: &Backbone,
+        opt: &mut nn::Optimizer,
+        images: &Tensor,
+        poses: &[Pose],
+        rng: &mut impl Rng,
+    ) -> Result<StepStats> {
+        let features = backbone.forward_t(&backbone::preprocess(images)?, true);
+        let (loss, stats) = self.step(&features, poses, rng)?;
+        opt.backward_step(&loss);
+        Ok(stats)
+    }
+
+    /// The neural mesh the run has learned: `C`, the clutter bank's mean, κ = 1/T, and the
+    /// vertex statistics measured after training.
+    pub fn neural_mesh(&self, tau: Tensor, r_bar: Tensor) -> NeuralMesh {
+        let vertices = self.mesh.vertices().len() as i64;
+        let device = self.vertex_features.device();
+        NeuralMesh {
+            mesh: self.mesh.clone(),
+            vertex_features: self.vertex_features.shallow_clone(),
+            clutter: clutter_mean(&self.clutter),
+            kappa: Tensor::full([vertices], 1.0 / self.config.temperature, (Kind::Float, device)),
+            tau,
+            r_bar,
+        }
     }
 
     /// The loss of a batch of unit-norm features `N×D×h×w` at their ground-truth poses (to be
@@ -294,6 +335,20 @@ impl VertexStatistics {
             counts: vec![0; vertices],
             raster: Rasterizer::new(),
         }
+    }
+
+    /// Adds a batch of images (`N×3×H×W` in [0, 1]) at their ground-truth poses, the
+    /// backbone in eval mode.
+    pub fn add_images(
+        &mut self,
+        training: &SourceTraining,
+        backbone: &Backbone,
+        images: &Tensor,
+        poses: &[Pose],
+    ) -> Result<()> {
+        let x = backbone::preprocess(images)?;
+        let features = tch::no_grad(|| backbone.forward_t(&x, false));
+        self.add(training, &features, poses)
     }
 
     /// Adds a batch of unit-norm features `N×D×h×w` at their ground-truth poses.
