@@ -12,7 +12,7 @@ use crate::error::{EngineError, Result};
 use crate::input::{Crop, CropBox};
 use crate::mesh::Mesh;
 use crate::solver::{
-    Estimate, FeatureMap, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid,
+    Estimate, FeatureMap, GridRenders, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid,
 };
 
 /// One image's backbone features: `dim × height × width`, row-major, on the host.
@@ -53,6 +53,8 @@ pub struct PoseSolver {
     dim: usize,
     camera: Camera,
     pub config: SolverConfig,
+    /// The grid's renders for `config` (image-independent, made once); used while they fit it.
+    grid: GridRenders,
 }
 
 impl PoseSolver {
@@ -67,7 +69,8 @@ impl PoseSolver {
     ) -> Result<Self> {
         config.validate()?;
         NeuralMeshView::new(&mesh, &vertex_features, &clutter, dim)?;
-        Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config })
+        let grid = GridRenders::new(&mesh, &camera, &config)?;
+        Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config, grid })
     }
 
     /// From a mesh and its tensors (`R × dim`, `N × dim`), seen through the crop camera.
@@ -122,7 +125,11 @@ impl PoseSolver {
     /// reads it); the same estimate.
     pub fn solve_with_grid(&self, features: &Features) -> Result<(Estimate, Vec<ScoredPose>)> {
         let problem = self.problem(features)?;
-        let grid = grid_losses(&problem, &self.config)?;
+        let grid = if self.grid.fits(&self.camera, &self.config) {
+            self.grid.losses(&problem)?
+        } else {
+            grid_losses(&problem, &self.config)?
+        };
         Ok((solve_from_grid(&problem, &grid, &self.config)?, grid))
     }
 }

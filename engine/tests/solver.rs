@@ -4,8 +4,8 @@
 use udapose_engine::camera::fit_distance;
 use udapose_engine::raster::NO_FACE;
 use udapose_engine::solver::{
-    AdamConfig, FeatureMap, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch, SolverConfig,
-    grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
+    AdamConfig, FeatureMap, GridRenders, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch,
+    SolverConfig, grid_losses, grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
 };
 use udapose_engine::{Camera, EngineError, Pose, Rasterizer, View, rotation_error};
 use udapose_testkit::synthetic::{
@@ -399,4 +399,29 @@ fn bad_inputs_are_typed_errors() {
     // A one-pose grid with k = 3 gives one hypothesis.
     let one = SolverConfig { azimuths: vec![0.0], elevations: vec![0.0], thetas: vec![0.0], ..base() };
     assert_eq!(run(one).unwrap().hypotheses.len(), 1);
+}
+
+#[test]
+fn grid_renders_give_the_per_image_grid_losses_bit_for_bit() {
+    let m = model(12);
+    let config = SolverConfig::default();
+    let renders = GridRenders::new(&m.mesh, &crop(), &config).unwrap();
+    for seed in [13, 14, 15] {
+        let img = random_image(&m, seed);
+        let prob = problem(&m, &img);
+        let rendered = grid_losses(&prob, &config).unwrap();
+        let gathered = renders.losses(&prob).unwrap();
+        assert_eq!(rendered.len(), 144);
+        for (r, g) in rendered.iter().zip(&gathered) {
+            assert_eq!(r.pose, g.pose);
+            assert_eq!(r.loss.to_bits(), g.loss.to_bits(), "pose {:?}", r.pose);
+        }
+    }
+    // Renders of another grid or crop are refused, not used.
+    let coarse = SolverConfig { azimuths: vec![0.0, 1.0], ..config.clone() };
+    assert!(!renders.fits(&crop(), &coarse));
+    assert!(renders.fits(&crop(), &SolverConfig { hypotheses: 1, ..config.clone() }));
+    let other = GridRenders::new(&m.mesh, &Camera::for_crop(64, 160).unwrap(), &config).unwrap();
+    let img = random_image(&m, 16);
+    assert!(invalid(other.losses(&problem(&m, &img))));
 }

@@ -95,7 +95,7 @@ pub fn run(args: &Args) -> Result<()> {
     std::fs::create_dir_all(&work)?;
     let mut progress = train::state::resume(&work, &mut vs, &mut training)?;
     if progress.epoch > 0 {
-        eprintln!("resuming from {} after epoch {}", work.display(), progress.epoch);
+        eprintln!("resuming from {} (epoch {})", work.display(), progress.epoch);
     }
 
     let train = SyncarSplit::open(&args.data, "source", "train")?;

@@ -25,6 +25,7 @@
 //! `reports/solver-synthetic.md`.
 
 mod gradient;
+mod grid;
 mod optimise;
 
 use std::f64::consts::{PI, TAU};
@@ -38,6 +39,7 @@ use crate::mesh::Mesh;
 use crate::metrics::rotation_error;
 use crate::raster::{NO_FACE, Rasterizer};
 
+pub use grid::GridRenders;
 pub use optimise::{AdamConfig, Optimizer, PatternSearchConfig};
 
 /// Stride of the backbone's feature grid relative to the crop (METHOD.md §2).
@@ -340,18 +342,28 @@ impl<'a> Problem<'a> {
     pub fn loss(&self, scratch: &mut Scratch, pose: &Pose) -> Result<f64> {
         let frags = scratch.raster.render_faces(self.mesh, &self.grid, pose)?;
         let faces = self.mesh.faces();
+        let covered = frags
+            .face
+            .iter()
+            .zip(frags.barycentric)
+            .enumerate()
+            .filter(|(_, (f, _))| **f != NO_FACE)
+            .map(|(p, (&f, &weights))| grid::Covered { pixel: p as u32, vertices: faces[f as usize], weights });
+        Ok(self.covered_loss(covered))
+    }
+
+    /// `L` of a render given as the cells it covers, in raster order (the one summation both
+    /// [`Problem::loss`] and [`GridRenders::losses`] use, so the two agree bit for bit).
+    fn covered_loss(&self, covered: impl Iterator<Item = grid::Covered>) -> f64 {
         let r = self.vertices;
         let mut sum = 0.0f64;
-        for (p, (&f, w)) in frags.face.iter().zip(frags.barycentric).enumerate() {
-            if f == NO_FACE {
-                continue;
-            }
-            let [a, b, c] = faces[f as usize];
+        for grid::Covered { pixel, vertices: [a, b, c], weights: w } in covered {
+            let p = pixel as usize;
             let row = &self.similarity[p * r..(p + 1) * r];
             let obj = w[0] * row[a as usize] + w[1] * row[b as usize] + w[2] * row[c as usize];
             sum += f64::from(obj.max(self.clutter[p]) - self.clutter_pos[p]);
         }
-        Ok(1.0 - (self.base + sum) / self.pixels as f64)
+        1.0 - (self.base + sum) / self.pixels as f64
     }
 
     /// `L(pose)` and `∂L/∂(a, e, θ, log d)`. The face covering each pixel is piecewise constant

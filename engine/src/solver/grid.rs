@@ -1,0 +1,81 @@
+//! The grid's renders (METHOD.md §6.4), once per solver: the grid poses and their fit
+//! distances depend only on the mesh, the crop camera and the settings, never on the image, so
+//! which feature cells each pose covers, with which face's vertices and barycentric weights, is
+//! rasterised once; every image's grid losses are then a gather over `S = C·F`. The losses are
+//! bit-identical to rendering each pose per image: the same products, summed in the same pixel
+//! order ([`Problem::covered_loss`]).
+
+use rayon::prelude::*;
+
+use super::{Problem, ScoredPose, Scratch, SolverConfig};
+use crate::camera::{Camera, Pose, fit_distance};
+use crate::error::{EngineError, Result};
+use crate::mesh::Mesh;
+use crate::raster::NO_FACE;
+
+/// A feature cell a render covers: its index, the covering face's vertices and weights.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Covered {
+    pub pixel: u32,
+    pub vertices: [u32; 3],
+    pub weights: [f32; 3],
+}
+
+/// Every grid pose at its fit distance and the cells its render covers, in raster order.
+#[derive(Clone, Debug)]
+pub struct GridRenders {
+    /// What the renders were made for; a solver whose settings changed renders afresh.
+    crop: Camera,
+    config: SolverConfig,
+    vertices: usize,
+    poses: Vec<Pose>,
+    covered: Vec<Vec<Covered>>,
+}
+
+impl GridRenders {
+    pub fn new(mesh: &Mesh, crop: &Camera, config: &SolverConfig) -> Result<Self> {
+        config.validate()?;
+        let grid = crop.at_stride(config.stride)?;
+        let faces = mesh.faces();
+        let renders: Vec<(Pose, Vec<Covered>)> = config
+            .grid_angles()
+            .into_par_iter()
+            .map_init(Scratch::default, |scratch, [a, e, t]| {
+                let pose = Pose::new(a, e, t, fit_distance(mesh.vertices(), [a, e, t], crop, config.fill)?);
+                let frags = scratch.raster.render_faces(mesh, &grid, &pose)?;
+                let covered = frags
+                    .face
+                    .iter()
+                    .zip(frags.barycentric)
+                    .enumerate()
+                    .filter(|(_, (f, _))| **f != NO_FACE)
+                    .map(|(p, (&f, &weights))| Covered { pixel: p as u32, vertices: faces[f as usize], weights })
+                    .collect();
+                Ok((pose, covered))
+            })
+            .collect::<Result<_>>()?;
+        let (poses, covered) = renders.into_iter().unzip();
+        Ok(GridRenders { crop: *crop, config: config.clone(), vertices: mesh.vertices().len(), poses, covered })
+    }
+
+    /// Whether these renders are the grid of `config` on `crop` (the optimiser and `k` may differ).
+    pub fn fits(&self, crop: &Camera, config: &SolverConfig) -> bool {
+        let c = &self.config;
+        self.crop == *crop
+            && (&c.azimuths, &c.elevations, &c.thetas, c.fill, c.stride)
+                == (&config.azimuths, &config.elevations, &config.thetas, config.fill, config.stride)
+    }
+
+    /// [`super::grid_losses`] of `problem`, from the renders (in parallel over poses).
+    pub fn losses(&self, problem: &Problem) -> Result<Vec<ScoredPose>> {
+        if !self.fits(problem.crop_camera(), &self.config) || problem.vertices != self.vertices {
+            return Err(EngineError::InvalidInput("the grid renders are of another mesh or crop".into()));
+        }
+        Ok(self
+            .poses
+            .par_iter()
+            .zip(&self.covered)
+            .map(|(&pose, covered)| ScoredPose { pose, loss: problem.covered_loss(covered.iter().copied()) })
+            .collect())
+    }
+}
