@@ -14,7 +14,8 @@ use std::hint::black_box;
 use std::time::Instant;
 
 use udapose_engine::solver::{
-    AdamConfig, Optimizer, PatternSearchConfig, Problem, Scratch, SolverConfig, multi_pose_init, solve,
+    AdamConfig, GridRenders, Optimizer, PatternSearchConfig, Problem, Scratch, SolverConfig, grid_losses,
+    multi_pose_init, solve,
 };
 use udapose_engine::{Camera, PoseMetrics, rotation_error};
 use udapose_testkit::synthetic::{
@@ -254,6 +255,19 @@ fn time_pieces(
             black_box(multi_pose_init(&problems[i % problems.len()], &config).unwrap());
         }),
     );
+    bench(
+        "grid losses, each pose rendered per image (grid_losses, rayon)".into(),
+        time_us(|i| {
+            black_box(grid_losses(&problems[i % problems.len()], &config).unwrap());
+        }),
+    );
+    let renders = GridRenders::new(&model.mesh, crop, &config).unwrap();
+    bench(
+        "grid losses from renders made once per solver (GridRenders, rayon)".into(),
+        time_us(|i| {
+            black_box(renders.losses(&problems[i % problems.len()]).unwrap());
+        }),
+    );
 }
 
 /// The ratios measured within this run: GEMM vs plain loop, default solve vs METHOD's.
@@ -277,6 +291,14 @@ fn same_run_ratios(times: &[TimeRow], accuracy: &[AccuracyRow], threads: usize) 
             ratios.push_str(&format!(
                 "- {grid}: the GEMM (with the clutter map, {threads} threads) takes {:.2}× less time than the plain loop on one thread\n",
                 plain.median_us / gemm.median_us
+            ));
+        }
+        if let (Some(rendered), Some(gathered)) =
+            (time_of(grid, "grid losses, each pose rendered"), time_of(grid, "grid losses from renders"))
+        {
+            ratios.push_str(&format!(
+                "- {grid}: the grid losses from renders made once take {:.2}× less time than rendering the 144 poses per image (same losses, bit for bit)\n",
+                rendered.median_us / gathered.median_us
             ));
         }
         if let (Some(default), Some(method)) = (
@@ -306,7 +328,7 @@ fn write_report(images: usize, times: &[TimeRow], accuracy: &[AccuracyRow]) {
         "# Render-and-compare solver on synthetic images\n\n\
          Produced by `cargo bench -p udapose-engine --bench solver` (release, {threads} rayon threads) on {cpu}, \
          commit `{commit}`.\n\n\
-         Synthetic problems (`engine/src/solver/synthetic.rs`): the SynCar car cuboid (1054 vertices) with smooth \
+         Synthetic problems (`testkit/src/synthetic.rs`): the SynCar car cuboid (1054 vertices) with smooth \
          random 128-D unit vertex features (random Fourier features of frequency 5, smooth, or 10, sharp, per CAD unit), \
          one clutter vector; {images} poses per set from the SynCar source distribution (azimuth U(0, 2π), elevation U(−10°, 40°), \
          θ ~ N(0, 5°), distance = fit distance at fill U(0.8, 0.95)); features rendered at stride 4 and averaged \

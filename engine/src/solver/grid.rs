@@ -11,7 +11,7 @@ use super::{Problem, ScoredPose, Scratch, SolverConfig};
 use crate::camera::{Camera, Pose, fit_distance};
 use crate::error::{EngineError, Result};
 use crate::mesh::Mesh;
-use crate::raster::NO_FACE;
+use crate::raster::{Fragments, NO_FACE};
 
 /// A feature cell a render covers: its index, the covering face's vertices and weights.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -19,6 +19,17 @@ pub(super) struct Covered {
     pub pixel: u32,
     pub vertices: [u32; 3],
     pub weights: [f32; 3],
+}
+
+/// The cells a render covers, in raster order.
+pub(super) fn covered<'a>(frags: &'a Fragments<'a>, faces: &'a [[u32; 3]]) -> impl Iterator<Item = Covered> + 'a {
+    frags
+        .face
+        .iter()
+        .zip(frags.barycentric)
+        .enumerate()
+        .filter(|(_, (f, _))| **f != NO_FACE)
+        .map(|(p, (&f, &weights))| Covered { pixel: p as u32, vertices: faces[f as usize], weights })
 }
 
 /// Every grid pose at its fit distance and the cells its render covers, in raster order.
@@ -43,15 +54,7 @@ impl GridRenders {
             .map_init(Scratch::default, |scratch, [a, e, t]| {
                 let pose = Pose::new(a, e, t, fit_distance(mesh.vertices(), [a, e, t], crop, config.fill)?);
                 let frags = scratch.raster.render_faces(mesh, &grid, &pose)?;
-                let covered = frags
-                    .face
-                    .iter()
-                    .zip(frags.barycentric)
-                    .enumerate()
-                    .filter(|(_, (f, _))| **f != NO_FACE)
-                    .map(|(p, (&f, &weights))| Covered { pixel: p as u32, vertices: faces[f as usize], weights })
-                    .collect();
-                Ok((pose, covered))
+                Ok((pose, covered(&frags, faces).collect()))
             })
             .collect::<Result<_>>()?;
         let (poses, covered) = renders.into_iter().unzip();

@@ -37,7 +37,7 @@ use crate::camera::{Camera, Pose, fit_distance};
 use crate::error::{EngineError, Result};
 use crate::mesh::Mesh;
 use crate::metrics::rotation_error;
-use crate::raster::{NO_FACE, Rasterizer};
+use crate::raster::Rasterizer;
 
 pub use grid::GridRenders;
 pub use optimise::{AdamConfig, Optimizer, PatternSearchConfig};
@@ -341,15 +341,7 @@ impl<'a> Problem<'a> {
     /// `L(pose)`.
     pub fn loss(&self, scratch: &mut Scratch, pose: &Pose) -> Result<f64> {
         let frags = scratch.raster.render_faces(self.mesh, &self.grid, pose)?;
-        let faces = self.mesh.faces();
-        let covered = frags
-            .face
-            .iter()
-            .zip(frags.barycentric)
-            .enumerate()
-            .filter(|(_, (f, _))| **f != NO_FACE)
-            .map(|(p, (&f, &weights))| grid::Covered { pixel: p as u32, vertices: faces[f as usize], weights });
-        Ok(self.covered_loss(covered))
+        Ok(self.covered_loss(grid::covered(&frags, self.mesh.faces())))
     }
 
     /// `L` of a render given as the cells it covers, in raster order (the one summation both
