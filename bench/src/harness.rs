@@ -1,11 +1,11 @@
 //! What the benchmarks share: a `udapose-server` process on loopback and plain HTTP requests to
-//! it, the records of background clients' estimates and their statistics, CPU time from
-//! `/proc`, and the run's provenance (commit, machine, load average).
+//! it (the end-to-end tests' client, from `udapose-harness`), the records of background
+//! clients' estimates and their statistics, CPU time from `/proc`, and the run's provenance
+//! (commit, machine, load average).
 
 use std::{
     fs,
-    io::{Read, Write},
-    net::{SocketAddr, TcpListener, TcpStream},
+    net::SocketAddr,
     path::{Path, PathBuf},
     process::{Child, Command, Stdio},
     time::{Duration, Instant},
@@ -32,7 +32,7 @@ pub(crate) fn load_average() -> String {
 pub(crate) fn server_binary(server: Option<&Path>) -> Result<PathBuf> {
     let binary = match server {
         Some(p) => p.to_path_buf(),
-        None => std::env::current_exe()?.with_file_name("udapose-server"),
+        None => udapose_harness::workspace_binary("udapose-server")?,
     };
     ensure!(binary.is_file(), "{} not found: build the workspace first", binary.display());
     Ok(binary)
@@ -40,8 +40,7 @@ pub(crate) fn server_binary(server: Option<&Path>) -> Result<PathBuf> {
 
 /// `n` free loopback addresses (bound, then released).
 pub(crate) fn free_addrs(n: usize) -> Result<Vec<SocketAddr>> {
-    let listeners: Vec<TcpListener> = (0..n).map(|_| TcpListener::bind("127.0.0.1:0")).collect::<Result<_, _>>()?;
-    Ok(listeners.iter().map(TcpListener::local_addr).collect::<Result<_, _>>()?)
+    Ok(udapose_harness::free_addrs(n)?)
 }
 
 /// The PNG bytes of the first `n` images of a folder.
@@ -167,7 +166,7 @@ pub(crate) fn post_or_get(addr: SocketAddr, method: &str, path: &str, body: &[u8
     request(addr, method, path, &[], body)
 }
 
-/// [`post_or_get`] with extra headers.
+/// [`post_or_get`] with extra headers (the tests' HTTP client, `udapose-harness`).
 pub(crate) fn request(
     addr: SocketAddr,
     method: &str,
@@ -175,25 +174,7 @@ pub(crate) fn request(
     headers: &[(&str, &str)],
     body: &[u8],
 ) -> std::io::Result<(u16, String)> {
-    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
-    stream.set_read_timeout(Some(Duration::from_secs(120)))?;
-    let extra: String = headers.iter().map(|(k, v)| format!("{k}: {v}\r\n")).collect();
-    write!(
-        stream,
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n{extra}Content-Length: {}\r\n\r\n",
-        body.len()
-    )?;
-    // A server may answer (413) and close before it has read a large body: its answer still counts.
-    if let Err(e) = stream.write_all(body)
-        && !matches!(e.kind(), std::io::ErrorKind::BrokenPipe | std::io::ErrorKind::ConnectionReset)
-    {
-        return Err(e);
-    }
-    let mut response = String::new();
-    stream.read_to_string(&mut response)?;
-    let status = response.split_whitespace().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
-    let body = response.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default();
-    Ok((status, body))
+    udapose_harness::http_request(addr, method, path, headers, body).map(|r| (r.status, r.body))
 }
 
 /// One estimate: the model version that answered it, or why it failed.

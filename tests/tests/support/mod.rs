@@ -4,8 +4,8 @@
 
 use std::{
     fs::{self, File},
-    io::{Read, Write},
-    net::{SocketAddr, TcpListener, TcpStream},
+    io::Read,
+    net::SocketAddr,
     path::{Path, PathBuf},
     process::{Child, Command, ExitStatus, Stdio},
     thread,
@@ -293,18 +293,15 @@ fn server_binary() -> PathBuf {
     server
 }
 
-/// Test executables live in target/<profile>/deps/; binaries in target/<profile>/.
+/// A workspace binary of this build (test executables live in target/<profile>/deps/).
 pub fn beside_tests(name: &str) -> PathBuf {
-    let exe = std::env::current_exe().expect("locating the test executable");
-    let profile_dir = exe.parent().and_then(Path::parent).expect("test executable has no target dir");
-    profile_dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
+    udapose_harness::workspace_binary(name).expect("locating the workspace's binaries")
 }
 
-/// Distinct loopback addresses whose ports were free a moment ago: bind
-/// port 0 for each (all held at once, so they differ), then release them.
+/// Distinct loopback addresses whose ports were free a moment ago.
 pub fn free_addrs<const N: usize>() -> [SocketAddr; N] {
-    let listeners: Vec<_> = (0..N).map(|_| TcpListener::bind("127.0.0.1:0").expect("binding a free port")).collect();
-    std::array::from_fn(|i| listeners[i].local_addr().expect("reading the free port"))
+    let addrs = udapose_harness::free_addrs(N).expect("binding free ports");
+    std::array::from_fn(|i| addrs[i])
 }
 
 pub fn scratch_dir(name: &str) -> PathBuf {
@@ -313,108 +310,7 @@ pub fn scratch_dir(name: &str) -> PathBuf {
     dir
 }
 
-#[derive(Debug)]
-pub struct HttpResponse {
-    pub status: u16,
-    pub headers: Vec<(String, String)>,
-    pub body: String,
-}
-
-impl HttpResponse {
-    pub fn header(&self, name: &str) -> Option<&str> {
-        self.headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
-    }
-
-    pub fn json(&self) -> serde_json::Value {
-        serde_json::from_str(&self.body).unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.body))
-    }
-}
-
-/// Minimal HTTP/1.1 with `Connection: close`: Content-Length or chunked bodies. A server may
-/// answer before reading a large body (413); a failed write is then not an error.
-pub fn http_request(
-    addr: SocketAddr,
-    method: &str,
-    path: &str,
-    headers: &[(&str, &str)],
-    body: &[u8],
-) -> std::io::Result<HttpResponse> {
-    let timeout = Duration::from_secs(60);
-    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(5))?;
-    stream.set_read_timeout(Some(timeout))?;
-    let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
-    for (k, v) in headers {
-        head.push_str(&format!("{k}: {v}\r\n"));
-    }
-    if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("content-length")) {
-        head.push_str(&format!("Content-Length: {}\r\n", body.len()));
-    }
-    head.push_str("\r\n");
-    stream.write_all(head.as_bytes())?;
-    let _ = stream.write_all(body);
-    // Read the head, then exactly the body: some servers (chromedriver) keep the connection
-    // open despite `Connection: close`.
-    let mut raw = Vec::new();
-    let mut buf = [0u8; 16384];
-    let head_end = loop {
-        if let Some(i) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
-            break i + 4;
-        }
-        let n = stream.read(&mut buf)?;
-        if n == 0 {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                String::from_utf8_lossy(&raw).into_owned(),
-            ));
-        }
-        raw.extend_from_slice(&buf[..n]);
-    };
-    let head = String::from_utf8_lossy(&raw[..head_end]).into_owned();
-    let invalid = || std::io::Error::new(std::io::ErrorKind::InvalidData, head.clone());
-    let mut lines = head.lines();
-    let status =
-        lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|c| c.parse().ok()).ok_or_else(invalid)?;
-    let headers: Vec<(String, String)> =
-        lines.filter_map(|l| l.split_once(':').map(|(k, v)| (k.trim().to_owned(), v.trim().to_owned()))).collect();
-    let find = |name: &str| headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.clone());
-    let mut body = raw[head_end..].to_vec();
-    if let Some(length) = find("content-length").and_then(|v| v.parse::<usize>().ok()) {
-        while body.len() < length {
-            let n = stream.read(&mut buf)?;
-            if n == 0 {
-                break;
-            }
-            body.extend_from_slice(&buf[..n]);
-        }
-        body.truncate(length);
-    } else if find("transfer-encoding").is_some_and(|v| v.contains("chunked")) {
-        while !body.ends_with(b"0\r\n\r\n") {
-            let n = stream.read(&mut buf)?;
-            if n == 0 {
-                break;
-            }
-            body.extend_from_slice(&buf[..n]);
-        }
-        body = dechunk(&String::from_utf8_lossy(&body)).into_bytes();
-    } else {
-        stream.read_to_end(&mut body)?;
-    }
-    let body = String::from_utf8_lossy(&body).into_owned();
-    Ok(HttpResponse { status, headers, body })
-}
-
-fn dechunk(mut s: &str) -> String {
-    let mut out = String::new();
-    while let Some((size, rest)) = s.split_once("\r\n") {
-        let Ok(n) = usize::from_str_radix(size.trim(), 16) else { break };
-        if n == 0 || rest.len() < n {
-            break;
-        }
-        out.push_str(&rest[..n]);
-        s = rest[n..].trim_start_matches("\r\n");
-    }
-    out
-}
+pub use udapose_harness::{HttpResponse, http_request};
 
 /// One quick SynCar-OOD test image with its ground-truth angles.
 pub struct QuickImage {
