@@ -9,6 +9,7 @@ use std::{
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, oneshot};
 use tracing::Instrument;
 use udapose_api::{ActivationEntry, VersionView, Versions};
+use udapose_engine::input::{self, CropBox};
 
 use crate::{
     api::{EstimateAnswer, EstimateInput, ImageInput, Timings},
@@ -139,7 +140,9 @@ impl Service {
         let timeout = input.timeout.filter(|t| !t.is_zero()).unwrap_or(self.limits.default_timeout);
         let decode_started = Instant::now();
         let deadline = arrived + timeout;
-        let (pixels, in_flight) = self.decode(input.image, deadline).await?;
+        let crop = category.active().map(|a| a.manifest.crop);
+        let boxes = input.boxes.clone();
+        let (pixels, in_flight) = self.decode(input.image, deadline, move |w, h| reduction(w, h, &boxes, crop)).await?;
         let decode_ms = decode_started.elapsed().as_secs_f64() * 1e3;
         let (reply, answer) = oneshot::channel();
         let request = Request { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline, reply, in_flight };
@@ -167,10 +170,13 @@ impl Service {
 
     /// Decodes on a blocking thread, never on the async runtime, once the image's bytes fit in
     /// the in-flight budget (waiting for it until `deadline`).
+    /// `reduction(width, height)`: how much smaller a JPEG of that size may be decoded
+    /// ([`decode::Header::decode_for`]).
     async fn decode(
         &self,
         image: ImageInput,
         deadline: Instant,
+        reduction: impl FnOnce(u32, u32) -> u32 + Send + 'static,
     ) -> Result<(crate::api::Pixels, OwnedSemaphorePermit), ApiError> {
         let limits = self.limits.decode;
         // A decode slot only once the budget is had: an image waiting for room holds none.
@@ -180,7 +186,8 @@ impl Service {
                 let header = blocking(move || decode::Header::read(&head, limits)).await?;
                 let permit = self.reserve(header.cost(), deadline).await?;
                 let _slot = self.decode_slot().await?;
-                (blocking(move || header.decode(&bytes, limits)).await?, permit)
+                let r = reduction(header.width, header.height);
+                (blocking(move || header.decode_for(&bytes, limits, r)).await?, permit)
             }
             ImageInput::Raw { width, height, rgb8 } => {
                 let permit = self.reserve(decode::raw_cost(width, height), deadline).await?;
@@ -217,6 +224,22 @@ impl Service {
 }
 
 /// Whole KiB, rounded up (the budget's permits; u32 holds 4 TiB).
+/// How much smaller an image of `width × height` may be decoded for `boxes` (none: the whole
+/// image) cropped at the model's `crop` size: the regions the worker will cut, measured in the
+/// image's pixels ([`decode::reduction`]). 1 when a box is invalid, so that the worker's check
+/// reports it in the image's own coordinates, or when no model is active.
+fn reduction(width: u32, height: u32, boxes: &[[f64; 4]], crop: Option<[usize; 2]>) -> u32 {
+    let Some(crop) = crop else { return 1 };
+    let (w, h) = (width as usize, height as usize);
+    let region = |b: Option<CropBox>| input::crop_box(w, h, b, crop).map(|r| [r.width(), r.height()]);
+    let regions: Result<Vec<[f64; 2]>, _> = if boxes.is_empty() {
+        region(None).map(|r| vec![r])
+    } else {
+        boxes.iter().map(|&[x0, y0, x1, y1]| region(Some(CropBox { x0, y0, x1, y1 }))).collect()
+    };
+    regions.map_or(1, |r| decode::reduction(&r, crop))
+}
+
 fn kib(bytes: u64) -> u32 {
     u32::try_from(bytes.div_ceil(1024)).unwrap_or(u32::MAX)
 }

@@ -53,6 +53,7 @@ fn http_and_grpc_agree_exactly_and_are_accurate() {
 
     runtime.block_on(stream_matches_unary(&client, &images[..4]));
     runtime.block_on(raw_pixels_and_boxes(&client, &images[0]));
+    runtime.block_on(a_large_jpeg_decodes_reduced(&client, &images[..4]));
     check_models_metrics_openapi(&server);
 }
 
@@ -151,6 +152,31 @@ async fn raw_pixels_and_boxes(client: &Client, image: &QuickImage) {
         assert!((g - w).abs() < 1e-9, "{crop:?}");
     }
     assert!(crop[1][2] - crop[1][0] > 160.0, "the whole-image box is grown too: {crop:?}");
+}
+
+/// A photograph-sized JPEG (the quick image enlarged 16×) is decoded at 1/8 of its size, yet
+/// its answers are in its own coordinates and close to the small image's.
+async fn a_large_jpeg_decodes_reduced(client: &Client, images: &[QuickImage]) {
+    for image in images {
+        let small = image::load_from_memory(&image.bytes).unwrap().into_rgb8();
+        let (w, h) = (small.width() * 16, small.height() * 16);
+        let large = image::imageops::resize(&small, w, h, image::imageops::FilterType::Triangle);
+        let mut jpeg = Vec::new();
+        large.write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg).unwrap();
+        let want = client.estimate(udapose_client::request("car", image.bytes.clone())).await.unwrap();
+        let got = client.estimate(udapose_client::request("car", jpeg)).await.unwrap();
+        let (want, got) = (&want.estimates[0], &got.estimates[0]);
+        let b = got.crop_box.unwrap();
+        let expected = want.crop_box.unwrap();
+        for (g, e) in [b.x0, b.y0, b.x1, b.y1].iter().zip([expected.x0, expected.y0, expected.x1, expected.y1]) {
+            assert!((g - 16.0 * e).abs() < 1e-6, "crop box {b:?} vs 16 × {expected:?}");
+        }
+        let angle = geodesic(
+            rotation([got.azimuth, got.elevation, got.theta]),
+            rotation([want.azimuth, want.elevation, want.theta]),
+        );
+        assert!(angle.to_degrees() < 10.0, "{:.1}° from the small image's answer", angle.to_degrees());
+    }
 }
 
 fn check_models_metrics_openapi(server: &Server) {
