@@ -21,6 +21,8 @@ pub const BOX_FILL: f64 = 0.875;
 pub const MIN_IMAGE_SIDE: usize = 16;
 /// Smallest box side (pixels).
 pub const MIN_BOX_SIDE: f64 = 2.0;
+/// Largest size reduction of a decode ([`max_reduction`]): JPEG's DCT scales by 1/2, 1/4, 1/8.
+pub const MAX_REDUCTION: u32 = 8;
 
 /// An axis-aligned box in continuous image coordinates (`x` = column, `y` = row).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,12 +57,16 @@ impl CropBox {
     }
 }
 
-/// Packed RGB8 pixels, row-major (`width * height * 3` bytes), as `image::RgbImage::as_raw`.
+/// Packed RGB8 pixels, row-major (`width * height * 3` bytes), as `image::RgbImage::as_raw`,
+/// and the size of the image they were decoded from: a JPEG may be decoded at a fraction of its
+/// size ([`max_reduction`]), while boxes and crop boxes stay in the encoded image's pixels.
 #[derive(Clone, Copy, Debug)]
 pub struct Rgb8Image<'a> {
     pixels: &'a [u8],
     width: usize,
     height: usize,
+    /// `[width, height]` of the encoded image (the pixels' own size unless decoded reduced).
+    encoded: [usize; 2],
 }
 
 impl<'a> Rgb8Image<'a> {
@@ -76,7 +82,20 @@ impl<'a> Rgb8Image<'a> {
                 width.saturating_mul(height).saturating_mul(3)
             )));
         }
-        Ok(Rgb8Image { pixels, width, height })
+        Ok(Rgb8Image { pixels, width, height, encoded: [width, height] })
+    }
+
+    /// These pixels as a reduced decode of a `width × height` image (at most 8× larger per
+    /// side, never smaller): crops are then asked for, and answered, in that image's pixels.
+    pub fn decoded_from(self, width: usize, height: usize) -> Result<Self> {
+        let fits = |encoded: usize, stored: usize| encoded >= stored && encoded <= stored * MAX_REDUCTION as usize;
+        if !(fits(width, self.width) && fits(height, self.height)) {
+            return Err(EngineError::InvalidInput(format!(
+                "{}x{} pixels are not a reduced decode of a {width}x{height} image",
+                self.width, self.height
+            )));
+        }
+        Ok(Rgb8Image { encoded: [width, height], ..self })
     }
 
     pub fn width(&self) -> usize {
@@ -165,18 +184,70 @@ pub fn crop_box(width: usize, height: usize, bbox: Option<CropBox>, crop: [usize
     }
 }
 
+/// The largest reduction `r` (8, 4 or 2; else 1) at which a `width × height` image may be
+/// decoded for crops of `boxes` (none: the whole image) at the model's `crop = [H, W]`: every
+/// region those crops show keeps at least `H × W` pixels after shrinking `r`-fold, so the crop
+/// still downsamples and loses nothing it would have kept. 1 when a box is invalid: [`crop`]
+/// then reports it in the image's own pixels.
+pub fn max_reduction(width: usize, height: usize, boxes: &[CropBox], crop: [usize; 2]) -> u32 {
+    let regions: Result<Vec<CropBox>> = if boxes.is_empty() {
+        crop_box(width, height, None, crop).map(|r| vec![r])
+    } else {
+        boxes.iter().map(|&b| crop_box(width, height, Some(b), crop)).collect()
+    };
+    let Ok(regions) = regions else { return 1 };
+    let [ch, cw] = crop.map(|c| c as f64);
+    let fits = |r: f64| regions.iter().all(|b| b.width() / r >= cw && b.height() / r >= ch);
+    [MAX_REDUCTION, 4, 2].into_iter().find(|&r| fits(f64::from(r))).unwrap_or(1)
+}
+
+/// `image` shrunk `r`-fold by block means (`r × r` pixels each, fewer at the right and bottom
+/// edges; rounded): what a JPEG's DCT scaling approximates, for images decoded at full size.
+/// Returns the pixels and their width and height, `ceil(w / r) × ceil(h / r)`; the result is a
+/// reduced decode of `image` ([`Rgb8Image::decoded_from`] with its size).
+pub fn reduce(image: &Rgb8Image, r: u32) -> Result<(Vec<u8>, usize, usize)> {
+    if !(1..=MAX_REDUCTION).contains(&r) {
+        return Err(EngineError::InvalidInput(format!("reduction {r} is not 1 to {MAX_REDUCTION}")));
+    }
+    let r = r as usize;
+    let (w, h) = (image.width.div_ceil(r), image.height.div_ceil(r));
+    let mut out = Vec::with_capacity(w * h * 3);
+    let mut sums = vec![0u32; w * 3];
+    for rows in image.pixels.chunks(image.width * 3 * r) {
+        sums.iter_mut().for_each(|s| *s = 0);
+        for row in rows.chunks_exact(image.width * 3) {
+            for (sum, pixels) in sums.chunks_exact_mut(3).zip(row.chunks(3 * r)) {
+                for px in pixels.chunks_exact(3) {
+                    sum[0] += u32::from(px[0]);
+                    sum[1] += u32::from(px[1]);
+                    sum[2] += u32::from(px[2]);
+                }
+            }
+        }
+        let height = (rows.len() / (image.width * 3)) as u32;
+        for (block, sum) in sums.chunks_exact(3).enumerate() {
+            let n = height * (image.width - block * r).min(r) as u32;
+            out.extend(sum.iter().map(|&s| ((s + n / 2) / n) as u8));
+        }
+    }
+    Ok((out, w, h))
+}
+
 /// Cuts, pads and resizes `image` to the model's `crop = [H, W]` (see the module docs).
+/// `bbox` and the crop's box are in the encoded image's pixels ([`Rgb8Image::decoded_from`]).
 pub fn crop(image: &Rgb8Image, bbox: Option<CropBox>, crop: [usize; 2]) -> Result<Crop> {
-    if image.width < MIN_IMAGE_SIDE || image.height < MIN_IMAGE_SIDE {
+    let [width, height] = image.encoded;
+    if width < MIN_IMAGE_SIDE || height < MIN_IMAGE_SIDE {
         return Err(EngineError::InvalidInput(format!(
-            "image is {}x{} px; at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} is needed",
-            image.width, image.height
+            "image is {width}x{height} px; at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} is needed"
         )));
     }
-    let region = crop_box(image.width, image.height, bbox, crop)?;
+    let region = crop_box(width, height, bbox, crop)?;
     let [ch, cw] = crop;
-    let cols = taps(region.x0, region.width(), cw);
-    let rows = taps(region.y0, region.height(), ch);
+    // Encoded to stored pixels: exactly 1 unless the image was decoded reduced.
+    let (sx, sy) = (width as f64 / image.width as f64, height as f64 / image.height as f64);
+    let cols = taps(region.x0 / sx, region.width() / sx, cw);
+    let rows = taps(region.y0 / sy, region.height() / sy, ch);
     // Byte units until the end, so that an identity resize reproduces `p as f32 / 255.0`.
     let pad: [f64; 3] = std::array::from_fn(|c| IMAGENET_MEAN[c] * 255.0);
     let horizontal = resample_rows(image, &cols, &rows, pad);

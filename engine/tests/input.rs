@@ -3,7 +3,7 @@
 #![allow(clippy::needless_range_loop)] // pixel loops read best with indices
 
 use udapose_engine::backbone::IMAGENET_MEAN;
-use udapose_engine::input::{BOX_FILL, CropBox, Rgb8Image, crop, crop_box};
+use udapose_engine::input::{BOX_FILL, CropBox, Rgb8Image, crop, crop_box, max_reduction, reduce};
 use udapose_engine::mesh::Cuboid;
 use udapose_engine::{Camera, Pose, View};
 
@@ -145,4 +145,78 @@ fn cuboid_corners_map_back_through_the_crop() {
     for (a, b) in double.project_cuboid(&cuboid, &pose).unwrap().iter().zip(&corners) {
         assert!((a[0] - 2.0 * b[0]).abs() < 1e-9 && (a[1] - 2.0 * b[1]).abs() < 1e-9);
     }
+}
+
+#[test]
+fn the_reduction_keeps_every_region_at_least_the_crops_size() {
+    let crop = [128, 320];
+    let b = |x0: f64, y0: f64, x1: f64, y1: f64| CropBox { x0, y0, x1, y1 };
+    // 4000×3000 padded to the crop's 2.5:1 is 7500×3000: 1/8 leaves 937×375.
+    assert_eq!(max_reduction(4000, 3000, &[], crop), 8);
+    // A 1120×448 box grows by 1/0.875 to 1280×512: 1/4 leaves exactly 320×128.
+    assert_eq!(max_reduction(4000, 3000, &[b(100.0, 100.0, 1220.0, 548.0)], crop), 4);
+    assert_eq!(max_reduction(4000, 3000, &[b(100.0, 100.0, 1219.0, 540.0)], crop), 2, "1278.9×511.5 after growing");
+    let small = b(0.0, 0.0, 100.0, 40.0);
+    assert_eq!(max_reduction(4000, 3000, &[b(0.0, 0.0, 4000.0, 3000.0), small], crop), 1, "the smallest box decides");
+    assert_eq!(max_reduction(4000, 3000, &[b(0.0, 0.0, 4001.0, 100.0)], crop), 1, "a bad box: no reduction");
+    assert_eq!(max_reduction(320, 128, &[], crop), 1);
+}
+
+#[test]
+fn a_reduced_decode_is_cropped_in_the_encoded_images_pixels() {
+    // A smooth 1280×512 image and its 2×2 block means (what a JPEG decoded at 1/2 approximates).
+    let (w, h) = (1280, 512);
+    let value =
+        |x: usize, y: usize, c: usize| 128.0 + 100.0 * ((x as f64 / 40.0 + c as f64).sin() * (y as f64 / 30.0).cos());
+    let full: Vec<u8> = (0..w * h * 3).map(|i| value(i / 3 % w, i / 3 / w, i % 3) as u8).collect();
+    let half: Vec<u8> = (0..w / 2 * h / 2 * 3)
+        .map(|i| {
+            let (x, y, c) = (i / 3 % (w / 2), i / 3 / (w / 2), i % 3);
+            let sum: u32 = [(0, 0), (1, 0), (0, 1), (1, 1)]
+                .iter()
+                .map(|(dx, dy)| u32::from(full[((2 * y + dy) * w + 2 * x + dx) * 3 + c]))
+                .sum();
+            (sum as f64 / 4.0).round() as u8
+        })
+        .collect();
+    let full_image = Rgb8Image::new(&full, w, h).unwrap();
+    assert_eq!(reduce(&full_image, 2).unwrap(), (half.clone(), w / 2, h / 2), "reduce gives the rounded block means");
+    let half_image = Rgb8Image::new(&half, w / 2, h / 2).unwrap().decoded_from(w, h).unwrap();
+    for bbox in [None, Some(CropBox { x0: 301.0, y0: 77.0, x1: 901.0, y1: 407.5 })] {
+        let a = crop(&full_image, bbox, [64, 160]).unwrap();
+        let b = crop(&half_image, bbox, [64, 160]).unwrap();
+        assert_eq!(a.crop_box, b.crop_box, "the crop box is in the encoded image's pixels");
+        let diff = a.pixels.iter().zip(&b.pixels).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+        assert!(diff < 3.0 / 255.0, "{bbox:?}: max |full − reduced| = {:.2}/255", diff * 255.0);
+    }
+    // Boxes are checked against the encoded size, not the stored one.
+    let err = crop(&half_image, Some(CropBox { x0: 0.0, y0: 0.0, x1: 1281.0, y1: 100.0 }), [64, 160]).unwrap_err();
+    assert!(err.to_string().contains("leaves the 1280x512 image"), "{err}");
+    assert!(crop(&half_image, Some(CropBox { x0: 700.0, y0: 0.0, x1: 1280.0, y1: 512.0 }), [64, 160]).is_ok());
+    // Only a reduction of at most 8 per side, never an enlargement.
+    assert!(Rgb8Image::new(&half, w / 2, h / 2).unwrap().decoded_from(w / 2 - 1, h / 2).is_err());
+    assert!(Rgb8Image::new(&half, w / 2, h / 2).unwrap().decoded_from(8 * w, h).is_err());
+}
+
+#[test]
+fn reduce_averages_partial_blocks_at_the_edges() {
+    // 7×5 by 4: blocks of 4×4, 3×4, 4×1 and 3×1 pixels.
+    let (w, h) = (7, 5);
+    let raw: Vec<u8> = (0..w * h * 3).map(|i| (i / 3 % w * 10 + i / 3 / w * 40 + i % 3) as u8).collect();
+    let (out, rw, rh) = reduce(&Rgb8Image::new(&raw, w, h).unwrap(), 4).unwrap();
+    assert_eq!((rw, rh), (2, 2));
+    let pixels = &raw;
+    let mean = |xs: std::ops::Range<usize>, ys: std::ops::Range<usize>, c: usize| {
+        let v: Vec<f64> = ys.flat_map(|y| xs.clone().map(move |x| pixels[(y * w + x) * 3 + c] as f64)).collect();
+        (v.iter().sum::<f64>() / v.len() as f64).round() as u8
+    };
+    for c in 0..3 {
+        assert_eq!(out[c], mean(0..4, 0..4, c));
+        assert_eq!(out[3 + c], mean(4..7, 0..4, c));
+        assert_eq!(out[6 + c], mean(0..4, 4..5, c));
+        assert_eq!(out[9 + c], mean(4..7, 4..5, c));
+    }
+    let image = Rgb8Image::new(&raw, w, h).unwrap();
+    assert_eq!(reduce(&image, 1).unwrap(), (raw.clone(), w, h));
+    assert!(reduce(&image, 0).is_err() && reduce(&image, 9).is_err());
 }

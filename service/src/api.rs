@@ -9,10 +9,9 @@ pub struct Pixels {
     pub rgb8: Vec<u8>,
     pub width: usize,
     pub height: usize,
-    /// Pixels of the encoded image per stored pixel, `[x, y]`: 1 unless a JPEG was decoded at a
-    /// reduced size ([`crate::decode::Header::decode_for`]); boxes and answers stay in the
-    /// encoded image's coordinates.
-    pub scale: [f64; 2],
+    /// `[width, height]` of the encoded image: `[width, height]` unless the image was kept at a
+    /// reduced size ([`crate::decode::Header::decode_for`]); boxes and answers are in its pixels.
+    pub encoded: [usize; 2],
 }
 
 /// What a transport hands the service.

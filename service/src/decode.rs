@@ -5,6 +5,8 @@ use std::{io::Cursor, panic::AssertUnwindSafe};
 
 use image::{ImageDecoder, ImageFormat, ImageReader, Limits, error::ImageError};
 
+use udapose_engine::input::{self, Rgb8Image};
+
 use crate::{api::Pixels, error::ApiError};
 
 /// Bounds on what an image may decode to.
@@ -58,29 +60,34 @@ impl Header {
         guarded(|| decode_checked(bytes, *self, limits))
     }
 
-    /// Decodes the image to RGB8, a JPEG at `1 / reduction` of its size (1, 2, 4 or 8; see
-    /// [`reduction`]) by its DCT's own scaling: a 4000×3000 photograph decoded at 1/8 skips most
-    /// of the inverse DCT and leaves the crop a 64× smaller image to resample. Other formats,
-    /// and JPEGs neither RGB nor grey, decode at full size.
+    /// Decodes the image to RGB8 at `1 / reduction` of its size (1, 2, 4 or 8, from
+    /// `udapose_engine::input::max_reduction`): a JPEG by its DCT's own scaling (a 4000×3000
+    /// photograph at 1/8 skips most of the inverse DCT), anything else (and JPEGs the scaling
+    /// decoder does not take: CMYK, 16-bit, any it refuses) at full size, then by block means
+    /// ([`reduced`]). Either way the crop then resamples an image `reduction²` times smaller.
     pub fn decode_for(&self, bytes: &[u8], limits: DecodeLimits, reduction: u32) -> Result<Pixels, ApiError> {
-        if self.format != ImageFormat::Jpeg || reduction <= 1 {
+        if reduction <= 1 {
             return self.decode(bytes, limits);
         }
-        guarded(|| match decode_jpeg_reduced(bytes, *self, limits, reduction)? {
-            Some(pixels) => Ok(pixels),
-            None => decode_checked(bytes, *self, limits),
+        guarded(|| {
+            if self.format == ImageFormat::Jpeg
+                && let Some(pixels) = decode_jpeg_reduced(bytes, *self, limits, reduction)
+            {
+                return Ok(pixels);
+            }
+            reduced(decode_checked(bytes, *self, limits)?, reduction)
         })
     }
 }
 
-/// The largest size reduction (1, 2, 4 or 8) of an image after which each region the model
-/// will crop (`regions`: width × height in the image's pixels) still has at least the crop's
-/// `[H, W]` pixels on each side, so the crop still downsamples and loses no detail it would
-/// have kept.
-pub fn reduction(regions: &[[f64; 2]], crop: [usize; 2]) -> u32 {
-    let [ch, cw] = crop.map(|c| c as f64);
-    let fits = |r: f64| regions.iter().all(|&[w, h]| w / r >= cw && h / r >= ch);
-    [8, 4, 2].into_iter().find(|&r| !regions.is_empty() && fits(f64::from(r))).unwrap_or(1)
+/// `pixels` shrunk `r`-fold by block means (`udapose_engine::input::reduce`), still describing
+/// the image they were decoded from.
+pub fn reduced(pixels: Pixels, r: u32) -> Result<Pixels, ApiError> {
+    if r <= 1 {
+        return Ok(pixels);
+    }
+    let (rgb8, width, height) = input::reduce(&Rgb8Image::new(&pixels.rgb8, pixels.width, pixels.height)?, r)?;
+    Ok(Pixels { rgb8, width, height, encoded: pixels.encoded })
 }
 
 /// What [`raw`] pixels of this size cost in flight (their copy).
@@ -137,38 +144,27 @@ fn decode_checked(bytes: &[u8], header: Header, limits: DecodeLimits) -> Result<
     reader.limits(l);
     let image = reader.decode().map_err(|e| describe(e, format))?.into_rgb8();
     let (width, height) = (image.width() as usize, image.height() as usize);
-    Ok(Pixels { rgb8: image.into_raw(), width, height, scale: [1.0, 1.0] })
+    Ok(Pixels { rgb8: image.into_raw(), width, height, encoded: [width, height] })
 }
 
 /// A JPEG decoded at `1 / reduction` of its size; `None` for pixel formats other than RGB and
-/// 8-bit grey (CMYK, 16-bit), which the full decoder handles.
-fn decode_jpeg_reduced(
-    bytes: &[u8],
-    header: Header,
-    limits: DecodeLimits,
-    reduction: u32,
-) -> Result<Option<Pixels>, ApiError> {
-    let bad = |e: jpeg_decoder::Error| ApiError::InvalidArgument(format!("cannot decode the JPEG image: {e}"));
+/// 8-bit grey, and for files the scaling decoder refuses: the full decoder then decides.
+fn decode_jpeg_reduced(bytes: &[u8], header: Header, limits: DecodeLimits, reduction: u32) -> Option<Pixels> {
+    use jpeg_decoder::PixelFormat::{L8, RGB24};
     let mut decoder = jpeg_decoder::Decoder::new(Cursor::new(bytes));
     decoder.set_max_decoding_buffer_size(usize::try_from(limits.max_alloc).unwrap_or(usize::MAX));
     // JPEG sides are 16-bit, and the header's were checked against `max_side`.
     let side = |n: u32| u16::try_from(n.div_ceil(reduction)).unwrap_or(u16::MAX);
-    let (w, h) = decoder.scale(side(header.width), side(header.height)).map_err(bad)?;
-    let format = decoder.info().map(|i| i.pixel_format);
-    if !matches!(format, Some(jpeg_decoder::PixelFormat::RGB24 | jpeg_decoder::PixelFormat::L8)) {
-        return Ok(None);
+    let (w, h) = decoder.scale(side(header.width), side(header.height)).ok()?;
+    let format = decoder.info()?.pixel_format;
+    if !matches!(format, RGB24 | L8) {
+        return None;
     }
-    let data = decoder.decode().map_err(bad)?;
+    let data = decoder.decode().ok()?;
+    let rgb8 = if format == L8 { data.iter().flat_map(|&v| [v, v, v]).collect() } else { data };
     let (width, height) = (usize::from(w), usize::from(h));
-    let rgb8 = match format {
-        Some(jpeg_decoder::PixelFormat::L8) => data.iter().flat_map(|&v| [v, v, v]).collect(),
-        _ => data,
-    };
-    if width == 0 || height == 0 || rgb8.len() != width * height * 3 {
-        return Err(ApiError::InvalidArgument("cannot decode the JPEG image: its scaled size is inconsistent".into()));
-    }
-    let scale = [f64::from(header.width) / width as f64, f64::from(header.height) / height as f64];
-    Ok(Some(Pixels { rgb8, width, height, scale }))
+    let encoded = [header.width as usize, header.height as usize];
+    (width > 0 && height > 0 && rgb8.len() == width * height * 3).then_some(Pixels { rgb8, width, height, encoded })
 }
 
 /// Whether a JPEG's last scan (SOS, FF DA) is followed by the end-of-image marker (FF D9). Inside
@@ -207,7 +203,8 @@ pub fn raw(width: u32, height: u32, rgb8: &[u8], limits: DecodeLimits) -> Result
             rgb8.len()
         )));
     }
-    Ok(Pixels { rgb8: rgb8.to_vec(), width: width as usize, height: height as usize, scale: [1.0, 1.0] })
+    let (width, height) = (width as usize, height as usize);
+    Ok(Pixels { rgb8: rgb8.to_vec(), width, height, encoded: [width, height] })
 }
 
 #[cfg(test)]
@@ -219,17 +216,6 @@ mod tests {
         let mut out = Vec::new();
         img.write_to(&mut Cursor::new(&mut out), ImageFormat::Jpeg).unwrap();
         out
-    }
-
-    #[test]
-    fn the_reduction_keeps_every_region_at_least_the_crops_size() {
-        let crop = [128, 320];
-        // 4000×3000 padded to the crop's 2.5:1 is 7500×3000: 1/8 leaves 937×375.
-        assert_eq!(reduction(&[[7500.0, 3000.0]], crop), 8);
-        assert_eq!(reduction(&[[1280.0, 512.0]], crop), 4);
-        assert_eq!(reduction(&[[1279.0, 512.0]], crop), 2);
-        assert_eq!(reduction(&[[7500.0, 3000.0], [600.0, 240.0]], crop), 1, "the smallest box decides");
-        assert_eq!(reduction(&[], crop), 1);
     }
 
     fn pattern_jpeg(width: u32, height: u32, grey: bool) -> Vec<u8> {
@@ -275,20 +261,22 @@ mod tests {
             let bytes = pattern_jpeg(1601, 1203, grey);
             let header = Header::read(&bytes, limits).unwrap();
             let full = header.decode(&bytes, limits).unwrap();
-            assert_eq!(full.scale, [1.0, 1.0]);
+            assert_eq!(full.encoded, [1601, 1203]);
             for r in [2usize, 4, 8] {
                 let reduced = header.decode_for(&bytes, limits, r as u32).unwrap();
                 assert_eq!((reduced.width, reduced.height), (1601usize.div_ceil(r), 1203usize.div_ceil(r)));
-                assert_eq!(reduced.scale, [1601.0 / reduced.width as f64, 1203.0 / reduced.height as f64]);
+                assert_eq!(reduced.encoded, [1601, 1203]);
                 let error = block_error(&full, &reduced, r);
                 assert!(error < 3.0, "grey {grey}, 1/{r}: mean |reduced - block mean| = {error:.2} (of 255)");
             }
         }
-        // Not a JPEG: decoded at full size whatever the reduction.
+        // Not a JPEG: decoded at full size, then block means.
         let png = png(40, 30);
         let header = Header::read(&png, limits).unwrap();
+        let full = header.decode(&png, limits).unwrap();
         let pixels = header.decode_for(&png, limits, 8).unwrap();
-        assert_eq!((pixels.width, pixels.height, pixels.scale), (40, 30, [1.0, 1.0]));
+        assert_eq!((pixels.width, pixels.height, pixels.encoded), (5, 4, [40, 30]));
+        assert!(block_error(&full, &pixels, 8) <= 0.5, "rounded block means");
     }
 
     #[test]

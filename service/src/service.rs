@@ -140,9 +140,12 @@ impl Service {
         let timeout = input.timeout.filter(|t| !t.is_zero()).unwrap_or(self.limits.default_timeout);
         let decode_started = Instant::now();
         let deadline = arrived + timeout;
+        // How much smaller the image may be kept for the crops this model will cut from it.
         let crop = category.active().map(|a| a.manifest.crop);
-        let boxes = input.boxes.clone();
-        let (pixels, in_flight) = self.decode(input.image, deadline, move |w, h| reduction(w, h, &boxes, crop)).await?;
+        let boxes: Vec<CropBox> = input.boxes.iter().map(|&[x0, y0, x1, y1]| CropBox { x0, y0, x1, y1 }).collect();
+        let reduction =
+            move |w: u32, h: u32| crop.map_or(1, |crop| input::max_reduction(w as usize, h as usize, &boxes, crop));
+        let (pixels, in_flight) = self.decode(input.image, deadline, reduction).await?;
         let decode_ms = decode_started.elapsed().as_secs_f64() * 1e3;
         let (reply, answer) = oneshot::channel();
         let request = Request { pixels, boxes: input.boxes, enqueued: Instant::now(), deadline, reply, in_flight };
@@ -169,9 +172,8 @@ impl Service {
     }
 
     /// Decodes on a blocking thread, never on the async runtime, once the image's bytes fit in
-    /// the in-flight budget (waiting for it until `deadline`).
-    /// `reduction(width, height)`: how much smaller a JPEG of that size may be decoded
-    /// ([`decode::Header::decode_for`]).
+    /// the in-flight budget (waiting for it until `deadline`); `reduction(width, height)` says
+    /// how much smaller an image of that size may be kept ([`decode::Header::decode_for`]).
     async fn decode(
         &self,
         image: ImageInput,
@@ -192,7 +194,8 @@ impl Service {
             ImageInput::Raw { width, height, rgb8 } => {
                 let permit = self.reserve(decode::raw_cost(width, height), deadline).await?;
                 let _slot = self.decode_slot().await?;
-                (blocking(move || decode::raw(width, height, &rgb8, limits)).await?, permit)
+                let r = reduction(width, height);
+                (blocking(move || decode::reduced(decode::raw(width, height, &rgb8, limits)?, r)).await?, permit)
             }
         })
     }
@@ -224,22 +227,6 @@ impl Service {
 }
 
 /// Whole KiB, rounded up (the budget's permits; u32 holds 4 TiB).
-/// How much smaller an image of `width × height` may be decoded for `boxes` (none: the whole
-/// image) cropped at the model's `crop` size: the regions the worker will cut, measured in the
-/// image's pixels ([`decode::reduction`]). 1 when a box is invalid, so that the worker's check
-/// reports it in the image's own coordinates, or when no model is active.
-fn reduction(width: u32, height: u32, boxes: &[[f64; 4]], crop: Option<[usize; 2]>) -> u32 {
-    let Some(crop) = crop else { return 1 };
-    let (w, h) = (width as usize, height as usize);
-    let region = |b: Option<CropBox>| input::crop_box(w, h, b, crop).map(|r| [r.width(), r.height()]);
-    let regions: Result<Vec<[f64; 2]>, _> = if boxes.is_empty() {
-        region(None).map(|r| vec![r])
-    } else {
-        boxes.iter().map(|&[x0, y0, x1, y1]| region(Some(CropBox { x0, y0, x1, y1 }))).collect()
-    };
-    regions.map_or(1, |r| decode::reduction(&r, crop))
-}
-
 fn kib(bytes: u64) -> u32 {
     u32::try_from(bytes.div_ceil(1024)).unwrap_or(u32::MAX)
 }

@@ -231,32 +231,20 @@ fn process(loaded: &Loaded, batch: Vec<Request>) {
     }
 }
 
-/// The request's crops at the model's size. Boxes are in the encoded image's pixels; a JPEG
-/// decoded smaller ([`Pixels::scale`]) is cut at the boxes scaled down, and each crop's box is
-/// scaled back up, so answers stay in the encoded image's coordinates.
+/// The request's crops at the model's size; boxes and crop boxes in the encoded image's pixels
+/// (the decode may be smaller, [`Pixels::encoded`]).
 fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
-    let pixels = &request.pixels;
-    let image = Rgb8Image::new(&pixels.rgb8, pixels.width, pixels.height)?;
+    let Pixels { rgb8, width, height, encoded: [ew, eh] } = &request.pixels;
+    let image = Rgb8Image::new(rgb8, *width, *height)?.decoded_from(*ew, *eh)?;
     let size = loaded.active.manifest.crop;
-    let [sx, sy] = pixels.scale;
-    let crop = |b: Option<CropBox>| -> Result<Crop, ApiError> {
-        if pixels.scale == [1.0, 1.0] {
-            return Ok(input::crop(&image, b, size)?);
-        }
-        // Only boxes the service found valid reach a reduced image (`service::reduction`): the
-        // clamp takes back a rounding error past its edge (`x1 = width`), never a bad box.
-        let (w, h) = (pixels.width as f64, pixels.height as f64);
-        let scaled =
-            b.map(|b| CropBox { x0: b.x0 / sx, y0: b.y0 / sy, x1: (b.x1 / sx).min(w), y1: (b.y1 / sy).min(h) });
-        let mut crop = input::crop(&image, scaled, size)?;
-        let r = crop.crop_box;
-        crop.crop_box = CropBox { x0: r.x0 * sx, y0: r.y0 * sy, x1: r.x1 * sx, y1: r.y1 * sy };
-        Ok(crop)
-    };
     if request.boxes.is_empty() {
-        return Ok(vec![crop(None)?]);
+        return Ok(vec![input::crop(&image, None, size)?]);
     }
-    request.boxes.iter().map(|&[x0, y0, x1, y1]| crop(Some(CropBox { x0, y0, x1, y1 }))).collect()
+    request
+        .boxes
+        .iter()
+        .map(|&[x0, y0, x1, y1]| Ok(input::crop(&image, Some(CropBox { x0, y0, x1, y1 }), size)?))
+        .collect()
 }
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
