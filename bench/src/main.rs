@@ -6,6 +6,7 @@
 mod bad_inputs;
 mod gate;
 mod harness;
+mod input;
 mod scale;
 mod service;
 mod solver;
@@ -41,6 +42,9 @@ enum Bench {
     /// Every bad input of the hostile-user review over HTTP and gRPC: status, message, panics
     /// and health after each (reports/bad-inputs.md); fails unless every row is as specified.
     BadInputs(bad_inputs::BadInputsArgs),
+    /// What an estimate's input costs against one backbone pass: JPEG decoding at full and
+    /// reduced size and cropping (320×128, 1280×512, 4000×3000), and requests with 1, 4, 16 boxes.
+    Input(input::InputArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -50,6 +54,7 @@ fn main() -> anyhow::Result<()> {
         Bench::Service(a) => service::run(&a),
         Bench::Gate(a) => gate::run(&a),
         Bench::Scale(a) => scale::run(&a),
+        Bench::Input(a) => input::run(&a),
     }
 }
 
