@@ -53,7 +53,7 @@ fn http_and_grpc_agree_exactly_and_are_accurate() {
 
     runtime.block_on(stream_matches_unary(&client, &images[..4]));
     runtime.block_on(raw_pixels_and_boxes(&client, &images[0]));
-    runtime.block_on(a_large_jpeg_decodes_reduced(&client, &images[..4]));
+    runtime.block_on(a_large_jpeg_decodes_reduced(&client, &images[..8]));
     check_models_metrics_openapi(&server);
 }
 
@@ -154,29 +154,50 @@ async fn raw_pixels_and_boxes(client: &Client, image: &QuickImage) {
     assert!(crop[1][2] - crop[1][0] > 160.0, "the whole-image box is grown too: {crop:?}");
 }
 
-/// A photograph-sized JPEG (the quick image enlarged 16×) is decoded at 1/8 of its size, yet
-/// its answers are in its own coordinates and close to the small image's.
+/// A photograph-sized JPEG (the quick image enlarged 16×) is decoded at 1/8 of its size by its
+/// DCT's scaling, yet its answers are in its own coordinates and agree with those on the same
+/// image's full-size pixels (which the service shrinks by block means instead).
+///
+/// The small image is no reference for the pose: enlarging and re-encoding blurs it, and the
+/// quick model answered one CI run's image 19° apart. Nor is any one answer: the quick model's two
+/// best hypotheses are often within 1% of each other's score, and the few-1/255 differences of
+/// the two reductions swap them (21° on one image in 16). So each answer must match one of the
+/// two best hypotheses on the full-size pixels, and the answers as a whole must agree closely.
 async fn a_large_jpeg_decodes_reduced(client: &Client, images: &[QuickImage]) {
+    let mut angles = Vec::new();
     for image in images {
         let small = image::load_from_memory(&image.bytes).unwrap().into_rgb8();
         let (w, h) = (small.width() * 16, small.height() * 16);
         let large = image::imageops::resize(&small, w, h, image::imageops::FilterType::Triangle);
         let mut jpeg = Vec::new();
         large.write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg).unwrap();
-        let want = client.estimate(udapose_client::request("car", image.bytes.clone())).await.unwrap();
+        let pixels = image::load_from_memory(&jpeg).unwrap().into_rgb8().into_raw();
+        let raw = EstimateRequest {
+            category: "car".into(),
+            input: Some(Input::Raw(RawImage { width: w, height: h, rgb8: pixels })),
+            ..Default::default()
+        };
+        let small = client.estimate(udapose_client::request("car", image.bytes.clone())).await.unwrap();
+        let want = client.estimate(raw).await.unwrap();
         let got = client.estimate(udapose_client::request("car", jpeg)).await.unwrap();
-        let (want, got) = (&want.estimates[0], &got.estimates[0]);
-        let b = got.crop_box.unwrap();
-        let expected = want.crop_box.unwrap();
-        for (g, e) in [b.x0, b.y0, b.x1, b.y1].iter().zip([expected.x0, expected.y0, expected.x1, expected.y1]) {
-            assert!((g - 16.0 * e).abs() < 1e-6, "crop box {b:?} vs 16 × {expected:?}");
+        let (small, want, got) = (&small.estimates[0], &want.estimates[0], &got.estimates[0]);
+        let corners = |e: &PoseEstimate| e.crop_box.map(|b| [b.x0, b.y0, b.x1, b.y1]).unwrap();
+        let (b, s) = (corners(got), corners(small));
+        for (g, s) in b.iter().zip(s) {
+            assert!((g - 16.0 * s).abs() < 1e-6, "crop box {b:?} vs 16 × {s:?}");
         }
-        let angle = geodesic(
-            rotation([got.azimuth, got.elevation, got.theta]),
-            rotation([want.azimuth, want.elevation, want.theta]),
-        );
-        assert!(angle.to_degrees() < 10.0, "{:.1}° from the small image's answer", angle.to_degrees());
+        assert_eq!(corners(want), b, "the JPEG's crop box vs its pixels'");
+        let pose = rotation([got.azimuth, got.elevation, got.theta]);
+        let nearest = want.hypotheses[..2]
+            .iter()
+            .map(|h| geodesic(pose, rotation([h.azimuth, h.elevation, h.theta])).to_degrees())
+            .fold(f64::INFINITY, f64::min);
+        assert!(nearest < 10.0, "{nearest:.1}° from the best two hypotheses on the full-size pixels");
+        angles.push(geodesic(pose, rotation([want.azimuth, want.elevation, want.theta])).to_degrees());
     }
+    angles.sort_by(f64::total_cmp);
+    let median = angles[angles.len() / 2];
+    assert!(median < 5.0, "median {median:.1}° from the answers on the full-size pixels: {angles:.1?}");
 }
 
 fn check_models_metrics_openapi(server: &Server) {
