@@ -125,12 +125,18 @@ impl PoseSolver {
     /// reads it); the same estimate.
     pub fn solve_with_grid(&self, features: &Features) -> Result<(Estimate, Vec<ScoredPose>)> {
         let problem = self.problem(features)?;
-        let grid = if self.grid.fits(&self.camera, &self.config) {
-            self.grid.losses(&problem)?
-        } else {
-            grid_losses(&problem, &self.config)?
-        };
+        let grid = self.grid_losses(&problem)?;
         Ok((solve_from_grid(&problem, &grid, &self.config)?, grid))
+    }
+
+    /// Every grid pose's loss on `problem`, from the renders made once when they fit the
+    /// solver's camera and grid (they do unless the config was changed after construction).
+    pub fn grid_losses(&self, problem: &Problem) -> Result<Vec<ScoredPose>> {
+        if self.grid.fits(&self.camera, &self.config) {
+            self.grid.losses(problem)
+        } else {
+            grid_losses(problem, &self.config)
+        }
     }
 }
 

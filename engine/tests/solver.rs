@@ -4,8 +4,8 @@
 use udapose_engine::camera::fit_distance;
 use udapose_engine::raster::NO_FACE;
 use udapose_engine::solver::{
-    AdamConfig, FeatureMap, GridRenders, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, ScoredPose, Scratch,
-    SolverConfig, grid_losses, grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
+    AdamConfig, FeatureMap, GridRenders, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, Prune, ScoredPose,
+    Scratch, SolverConfig, grid_losses, grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
 };
 use udapose_engine::{Camera, EngineError, Pose, Rasterizer, View, rotation_error};
 use udapose_testkit::synthetic::{
@@ -324,6 +324,52 @@ fn every_optimiser_improves_on_the_grid() {
     }
 }
 
+/// Plateau stopping and pruning spend fewer evaluations than the fixed schedule and end at the
+/// same pose; with neither, the schedule is the fixed one, step for step.
+#[test]
+fn early_stopping_and_pruning_save_evaluations_not_accuracy() {
+    let m = model(16);
+    let fixed = SolverConfig {
+        optimizer: Optimizer::Adam(AdamConfig::fixed()),
+        prune: Prune::default(),
+        ..SolverConfig::default()
+    };
+    let plateau = AdamConfig { patience: 10, min_improvement: 1e-4, ..AdamConfig::fixed() };
+    let early = SolverConfig { optimizer: Optimizer::Adam(plateau), ..fixed.clone() };
+    let pruned = SolverConfig { prune: Prune { after: 20, margin: 0.02 }, ..early.clone() };
+    let evaluations = |e: &udapose_engine::solver::Estimate| e.hypotheses.iter().map(|h| h.evaluations).sum::<usize>();
+    for seed in 0..4 {
+        let img = random_image(&m, 100 + seed);
+        let prob = problem(&m, &img);
+        let [f, e, p] = [&fixed, &early, &pruned].map(|c| solve(&prob, c).unwrap());
+        // The fixed schedule: 150 steps and the final point per hypothesis.
+        assert!(f.hypotheses.iter().all(|h| h.evaluations == 151), "{:?}", f.hypotheses);
+        assert!(evaluations(&e) < evaluations(&f), "plateau {} vs fixed {}", evaluations(&e), evaluations(&f));
+        assert!(evaluations(&p) <= evaluations(&e), "pruned {} vs plateau {}", evaluations(&p), evaluations(&e));
+        for (name, est) in [("plateau", &e), ("pruned", &p)] {
+            let err = rotation_error(&est.pose.rotation(), &img.pose.rotation()).to_degrees();
+            assert!(err < 5.0, "{name}: {err}°");
+            let apart = rotation_error(&est.pose.rotation(), &f.pose.rotation()).to_degrees();
+            assert!(apart < 2.0, "{name}: {apart}° from the fixed schedule's pose");
+            assert!(est.hypotheses[0].loss < f.hypotheses[0].loss + 2e-3, "{name}");
+        }
+    }
+    // A margin nothing trails by prunes nothing: the same answer as without pruning.
+    let img = random_image(&m, 100);
+    let prob = problem(&m, &img);
+    let wide = SolverConfig { prune: Prune { after: 20, margin: 10.0 }, ..early.clone() };
+    assert_eq!(solve(&prob, &wide).unwrap(), solve(&prob, &early).unwrap());
+    // A zero margin stops every hypothesis but the leader after 20 steps (plus its last point).
+    let tight = SolverConfig { prune: Prune { after: 20, margin: 0.0 }, ..early.clone() };
+    let t = solve(&prob, &tight).unwrap();
+    assert_eq!(
+        t.hypotheses.iter().filter(|h| h.evaluations == 21).count(),
+        t.hypotheses.len() - 1,
+        "{:?}",
+        t.hypotheses
+    );
+}
+
 #[test]
 fn bad_inputs_are_typed_errors() {
     let m = model(14);
@@ -385,6 +431,8 @@ fn bad_inputs_are_typed_errors() {
     assert!(invalid(run(adam(AdamConfig { lr: -0.1, ..AdamConfig::default() }))));
     assert!(invalid(run(adam(AdamConfig { beta1: 1.0, ..AdamConfig::default() }))));
     assert!(invalid(run(adam(AdamConfig { decay_every: 0, ..AdamConfig::default() }))));
+    assert!(invalid(run(adam(AdamConfig { min_improvement: -1e-3, ..AdamConfig::default() }))));
+    assert!(invalid(run(SolverConfig { prune: Prune { after: 10, margin: f64::NAN }, ..base() })));
     let search = |c: PatternSearchConfig| SolverConfig { optimizer: Optimizer::PatternSearch(c), ..base() };
     assert!(invalid(run(search(PatternSearchConfig { shrink: 1.0, ..PatternSearchConfig::default() }))));
     assert!(invalid(run(search(PatternSearchConfig { tolerance: 0.0, ..PatternSearchConfig::default() }))));

@@ -18,7 +18,7 @@ use udapose_engine::camera::Camera;
 use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::estimator::{self, Features, PoseSolver};
 use udapose_engine::metrics::paired_bootstrap;
-use udapose_engine::solver::{AdamConfig, Estimate, NeuralMeshView, Optimizer, SolverConfig};
+use udapose_engine::solver::{AdamConfig, Estimate, NeuralMeshView, Optimizer, Prune, SolverConfig, solve_from_grid};
 use udapose_engine::{Pose, pose_error};
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
@@ -64,11 +64,28 @@ pub struct SolverArgs {
 struct Row {
     name: String,
     truth: Pose,
+    /// Decoding the PNG and making the input tensor (the crop is the image itself).
+    load_ms: f64,
     backbone_ms: f64,
+    /// udapose's default solver, its time split by stage.
     fast: Solved,
+    stages: Stages,
+    /// The fixed 150-step schedule without pruning (the default before plateau stopping).
+    fixed: Solved,
     method: Solved,
     reference: Solved,
     same_inits: bool,
+}
+
+/// The default solver's time on one image by stage (ms).
+#[derive(Clone, Copy, Default)]
+struct Stages {
+    /// `S = C·F` and the clutter map ([`PoseSolver::problem`]).
+    similarity: f64,
+    /// The 144 grid losses from the cached renders.
+    grid: f64,
+    /// Selecting and refining the k hypotheses.
+    refine: f64,
 }
 
 /// One solver's answer on one image.
@@ -77,16 +94,18 @@ struct Solved {
     pose: Option<Pose>,
     loss: f64,
     error: f64,
+    /// Loss evaluations over all hypotheses.
+    evaluations: usize,
 }
 
 impl Solved {
     fn new(ms: f64, estimate: udapose_engine::Result<Estimate>, truth: &Pose) -> Self {
-        let (pose, loss) = match estimate {
-            Ok(e) => (Some(e.pose), e.hypotheses[0].loss),
-            Err(_) => (None, f64::NAN),
+        let (pose, loss, evaluations) = match estimate {
+            Ok(e) => (Some(e.pose), e.hypotheses[0].loss, e.hypotheses.iter().map(|h| h.evaluations).sum()),
+            Err(_) => (None, f64::NAN, 0),
         };
         let error = pose_error(pose.map(angles), angles(*truth));
-        Solved { ms, pose, loss, error }
+        Solved { ms, pose, loss, error, evaluations }
     }
 }
 
@@ -103,13 +122,13 @@ fn median(v: impl Iterator<Item = f64>) -> f64 {
     harness::median(&v.collect::<Vec<_>>())
 }
 
-/// Acc@π/6 of udapose (its default, and METHOD's steps) against the reference on the same
-/// images: how many only one of them gets right, and the difference with a 95% paired
-/// bootstrap interval (1000 resamples, seed 0).
+/// Acc@π/6 of udapose (its default, and METHOD's steps) against the reference, and of the
+/// default against the fixed schedule, on the same images: how many only one of each pair gets
+/// right, and the difference with a 95% paired bootstrap interval (1000 resamples, seed 0).
 fn paired_accuracy(rows: &[Row]) -> serde_json::Value {
     let hit = |s: &Solved| f64::from(u8::from(s.error < std::f64::consts::FRAC_PI_6));
-    let compare = |pick: fn(&Row) -> &Solved| {
-        let diff: Vec<f64> = rows.iter().map(|r| hit(pick(r)) - hit(&r.reference)).collect();
+    let compare = |pick: fn(&Row) -> &Solved, baseline: fn(&Row) -> &Solved| {
+        let diff: Vec<f64> = rows.iter().map(|r| hit(pick(r)) - hit(baseline(r))).collect();
         let ci = paired_bootstrap(diff.len(), 1000, 0, |idx| Some(mean(idx.iter().map(|&i| diff[i]))));
         json!({
             "only_udapose_right": diff.iter().filter(|&&d| d > 0.0).count(),
@@ -118,7 +137,11 @@ fn paired_accuracy(rows: &[Row]) -> serde_json::Value {
             "ci95": ci,
         })
     };
-    json!({"udapose": compare(|r| &r.fast), "udapose_method": compare(|r| &r.method)})
+    json!({
+        "udapose": compare(|r| &r.fast, |r| &r.reference),
+        "udapose_method": compare(|r| &r.method, |r| &r.reference),
+        "udapose_vs_fixed": compare(|r| &r.fast, |r| &r.fixed),
+    })
 }
 
 fn ms_since(t: Instant) -> f64 {
@@ -171,8 +194,15 @@ pub fn run(args: &SolverArgs) -> Result<()> {
         checkpoint::load(&args.model, Device::Cpu).with_context(|| format!("loading {}", args.model.display()))?;
     let [h, w] = model.manifest.crop;
     let solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], SolverConfig::default())?;
-    let mut method_solver = solver.clone();
-    method_solver.config.optimizer = Optimizer::Adam(AdamConfig::method());
+    let fixed_config = SolverConfig {
+        optimizer: Optimizer::Adam(AdamConfig::fixed()),
+        prune: Prune::default(),
+        ..solver.config.clone()
+    };
+    let fixed_solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], fixed_config)?;
+    let method_config =
+        SolverConfig { optimizer: Optimizer::Adam(AdamConfig::method()), ..fixed_solver.config.clone() };
+    let method_solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], method_config)?;
     let mesh_model = solver.mesh_model()?;
     let reference_config = ReferenceConfig { parallel_hypotheses: args.reference_parallel, ..Default::default() };
     if args.backbone_torch_threads < 0 {
@@ -187,7 +217,7 @@ pub fn run(args: &SolverArgs) -> Result<()> {
     let grid = solver.camera().at_stride(solver.config.stride)?;
 
     let images = backbone_phase(&model, &samples, args.images, &grid, total)?;
-    let fast = udapose_phase(&solver, &method_solver, &images)?;
+    let fast = udapose_phase(&solver, &fixed_solver, &method_solver, &images)?;
     // The reference under its own torch thread count (switched once: switching per call stalls
     // libtorch's thread pool).
     tch::set_num_threads(args.reference_torch_threads);
@@ -198,14 +228,17 @@ pub fn run(args: &SolverArgs) -> Result<()> {
         .into_iter()
         .zip(fast)
         .zip(reference_run?)
-        .map(|(((name, truth, backbone_ms, _), (fast, method, fast_inits)), (reference, reference_inits))| Row {
-            name,
-            truth,
-            backbone_ms,
-            fast,
-            method,
+        .map(|((image, udapose), (reference, reference_inits))| Row {
+            name: image.name,
+            truth: image.truth,
+            load_ms: image.load_ms,
+            backbone_ms: image.backbone_ms,
+            same_inits: !udapose.inits.is_empty() && udapose.inits == reference_inits,
+            fast: udapose.fast,
+            stages: udapose.stages,
+            fixed: udapose.fixed,
+            method: udapose.method,
             reference,
-            same_inits: !fast_inits.is_empty() && fast_inits == reference_inits,
         })
         .collect();
     let run = Run { args, command, load_before, model: &model, solver: &solver, reference_config, grid, torch_threads };
@@ -232,8 +265,14 @@ fn bar(total: usize, prefix: &str) -> ProgressBar {
     ProgressBar::new(total as u64).with_style(style).with_prefix(prefix.to_string())
 }
 
-/// One image's name, true pose, backbone time (ms) and features.
-type Image = (String, Pose, f64, Features);
+/// One image's name, true pose, load and backbone times (ms) and features.
+struct Image {
+    name: String,
+    truth: Pose,
+    load_ms: f64,
+    backbone_ms: f64,
+    features: Features,
+}
 
 /// The initial grid poses of an estimate's hypotheses (see [`inits`]).
 type Inits = Vec<[u64; 4]>;
@@ -252,12 +291,14 @@ fn backbone_phase(
     let progress = bar(total, "backbone");
     let each = samples.iter().flat_map(|(name, split)| (0..per_split).map(move |i| (*name, split, i)));
     for (k, (split_name, split, i)) in each.enumerate() {
+        let t = Instant::now();
         let (pixels, truth, ih, iw, name) = load_sample(split, i)?;
+        let image = Tensor::from_slice(&pixels).reshape([1, 3, ih as i64, iw as i64]);
+        let load_ms = ms_since(t);
         let name = if samples.len() > 1 { format!("{split_name}/{name}") } else { name };
         if (ih, iw) != (h, w) {
             bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
         }
-        let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
         if k == 0 {
             estimator::features(&model.backbone, &image)?;
         }
@@ -268,35 +309,66 @@ fn backbone_phase(
         if (f.height, f.width) != (grid.height, grid.width) {
             bail!("{name}: features are {}×{}, expected the {}×{} grid", f.height, f.width, grid.height, grid.width);
         }
-        images.push((name, truth, backbone_ms, f));
+        images.push(Image { name, truth, load_ms, backbone_ms, features: f });
         progress.inc(1);
     }
     progress.finish();
     Ok(images)
 }
 
-/// Phase 2: udapose's solver (its default, and METHOD's 300 steps) on those features.
+/// udapose's three solvers on one image.
+struct Udapose {
+    fast: Solved,
+    stages: Stages,
+    fixed: Solved,
+    method: Solved,
+    inits: Inits,
+}
+
+/// Phase 2: udapose's solvers (its default, stage by stage; the fixed schedule; METHOD's 300
+/// steps) on those features.
 fn udapose_phase(
     solver: &PoseSolver,
+    fixed_solver: &PoseSolver,
     method_solver: &PoseSolver,
     images: &[Image],
-) -> Result<Vec<(Solved, Solved, Inits)>> {
-    solver.solve(&images[0].3)?; // warm-up
+) -> Result<Vec<Udapose>> {
+    solver.solve(&images[0].features)?; // warm-up
     let progress = bar(images.len(), "udapose");
-    let mut fast = Vec::with_capacity(images.len());
-    for (_, truth, _, f) in images {
-        let t = Instant::now();
-        let estimate = solver.solve(f);
-        let fast_ms = ms_since(t);
-        let t = Instant::now();
-        let estimate_method = method_solver.solve(f);
-        let method_ms = ms_since(t);
-        let starts = inits(&estimate);
-        fast.push((Solved::new(fast_ms, estimate, truth), Solved::new(method_ms, estimate_method, truth), starts));
+    let mut out = Vec::with_capacity(images.len());
+    for image in images {
+        let (estimate, stages) = staged_solve(solver, &image.features);
+        let timed = |s: &PoseSolver| {
+            let t = Instant::now();
+            let estimate = s.solve(&image.features);
+            Solved::new(ms_since(t), estimate, &image.truth)
+        };
+        let (fixed, method) = (timed(fixed_solver), timed(method_solver));
+        let inits = inits(&estimate);
+        let ms = stages.similarity + stages.grid + stages.refine;
+        out.push(Udapose { fast: Solved::new(ms, estimate, &image.truth), stages, fixed, method, inits });
         progress.inc(1);
     }
     progress.finish();
-    Ok(fast)
+    Ok(out)
+}
+
+/// [`PoseSolver::solve`] one stage at a time, timing each (the same estimate).
+fn staged_solve(solver: &PoseSolver, features: &Features) -> (udapose_engine::Result<Estimate>, Stages) {
+    let mut stages = Stages::default();
+    let t = Instant::now();
+    let problem = solver.problem(features);
+    stages.similarity = ms_since(t);
+    let estimate = problem.and_then(|problem| {
+        let t = Instant::now();
+        let grid = solver.grid_losses(&problem)?;
+        stages.grid = ms_since(t);
+        let t = Instant::now();
+        let estimate = solve_from_grid(&problem, &grid, &solver.config);
+        stages.refine = ms_since(t);
+        estimate
+    });
+    (estimate, stages)
 }
 
 /// Phase 3: the reference on the same features (after a 5-step warm-up).
@@ -308,16 +380,18 @@ fn reference_phase(
 ) -> Result<Vec<(Solved, Inits)>> {
     let (camera, config) = (solver.camera(), &solver.config);
     let short = ReferenceConfig { adam: AdamConfig { steps: 5, ..AdamConfig::method() }, ..*reference_config };
-    reference::render_and_compare(mesh_model, &images[0].3.map()?, camera, config, &short)?; // warm-up
+    reference::render_and_compare(mesh_model, &images[0].features.map()?, camera, config, &short)?; // warm-up
     let progress = bar(images.len(), "reference");
     let mut out = Vec::with_capacity(images.len());
-    for (_, truth, _, f) in images {
+    for image in images {
         let t = Instant::now();
-        let estimate =
-            f.map().and_then(|m| reference::render_and_compare(mesh_model, &m, camera, config, reference_config));
+        let estimate = image
+            .features
+            .map()
+            .and_then(|m| reference::render_and_compare(mesh_model, &m, camera, config, reference_config));
         let ms = ms_since(t);
         let starts = inits(&estimate);
-        out.push((Solved::new(ms, estimate, truth), starts));
+        out.push((Solved::new(ms, estimate, &image.truth), starts));
         progress.set_message(format!("{:.0} ms per image", mean(out.iter().map(|(s, _)| s.ms))));
         progress.inc(1);
     }
