@@ -56,8 +56,8 @@ fn main() -> Result<()> {
         let hits: Vec<bool> = errors.iter().map(|e| *e < 30.0).collect();
         let agree = baseline.as_ref().map_or(hits.len(), |b| b.iter().zip(&hits).filter(|(a, b)| a == b).count());
         let n = errors.len() as f64;
-        let share = |deg: f64| errors.iter().filter(|e| **e < deg).count() as f64 / n;
         errors.sort_by(f64::total_cmp);
+        let share = |deg: f64| errors.iter().filter(|e| **e < deg).count() as f64 / n;
         println!(
             "{name:>20}: Acc@π/6 {:.4}  Acc@π/18 {:.4}  median {:.2}°  p90 {:.2}°  evaluations {:.1}  {:.2} ms  agree {agree}/{}",
             share(30.0),
