@@ -105,10 +105,10 @@ pub struct AdamConfig {
 impl Default for AdamConfig {
     /// [`AdamConfig::fixed`] with plateau stopping after 20 steps without a 1e-4 gain. Chosen
     /// with [`super::Prune`]'s 15 steps and 0.02 by `bench/examples/refine_variants.rs` on
-    /// adapt/val splits of `models/car` (source 300 images, combined and occ-l2 200 each): the
-    /// same Acc@π/6 as the fixed 150 steps on every image, in 124–152 evaluations per image
-    /// instead of 453; patience 15 changed 2 of 200 occ-l2 images. The paired check on 900
-    /// source images is in `reports/solver.md`.
+    /// adapt/val splits of `models/car` (`reports/refine-variants.md`: source 300 images,
+    /// combined and occ-l2 200 each): the same Acc@π/6 as the fixed 150 steps on every image, in
+    /// 124–152 evaluations per image instead of 453; patience 15 changed 2 of 200 occ-l2
+    /// images. The paired check on 900 source images is in `reports/solver.md`.
     fn default() -> Self {
         AdamConfig { patience: 20, min_improvement: 1e-4, ..AdamConfig::fixed() }
     }
