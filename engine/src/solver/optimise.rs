@@ -348,9 +348,9 @@ impl AdamRun {
             let lr = c.lr * c.decay.powi(self.phase as i32);
             let t = self.t as i32 + 1;
             let (b1t, b2t) = (1.0 - c.beta1.powi(t), 1.0 - c.beta2.powi(t));
-            for i in 0..4 {
-                self.m[i] = c.beta1 * self.m[i] + (1.0 - c.beta1) * g[i];
-                self.v[i] = c.beta2 * self.v[i] + (1.0 - c.beta2) * g[i] * g[i];
+            for (i, g) in g.into_iter().enumerate() {
+                self.m[i] = c.beta1 * self.m[i] + (1.0 - c.beta1) * g;
+                self.v[i] = c.beta2 * self.v[i] + (1.0 - c.beta2) * g * g;
                 self.x[i] -= lr * (self.m[i] / b1t) / ((self.v[i] / b2t).sqrt() + c.eps);
             }
             self.x[3] = self.x[3].clamp(f.log_d[0], f.log_d[1]);
