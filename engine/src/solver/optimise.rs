@@ -218,8 +218,13 @@ pub(super) fn refine(
         Optimizer::Adam(c) => adam(&mut f, x0, c)?,
         Optimizer::PatternSearch(c) => pattern_search(&mut f, x0, init.loss, c)?,
     };
-    let (x, loss) = if loss <= init.loss { (x, loss) } else { (x0, init.loss) };
-    Ok(Refined { pose: f.pose(&x), loss, evaluations: f.evaluations })
+    Ok(settle(&f, init, x, loss))
+}
+
+/// The refined pose, or the initial one where refinement ended worse.
+fn settle(f: &Objective, init: &ScoredPose, x: [f64; 4], loss: f64) -> Refined {
+    let (x, loss) = if loss <= init.loss { (x, loss) } else { (start(init).0, init.loss) };
+    Refined { pose: f.pose(&x), loss, evaluations: f.evaluations }
 }
 
 /// Stopping hypotheses that trail: after `after` Adam steps of every hypothesis, those whose
@@ -260,7 +265,7 @@ pub(super) fn refine_all(
     let mut runs: Vec<Pruned> = inits.iter().map(Pruned::new).collect();
     let advance = |runs: &mut [Pruned], limit: usize| {
         runs.par_iter_mut().try_for_each_init(Scratch::default, |scratch, r| {
-            let mut f = Objective { problem, scratch, log_d: r.log_d, evaluations: 0 };
+            let mut f = Objective { problem, scratch, log_d: start(&r.init).1, evaluations: 0 };
             r.adam.advance(&mut f, c, limit)?;
             r.evaluations += f.evaluations;
             Ok::<_, EngineError>(())
@@ -274,10 +279,9 @@ pub(super) fn refine_all(
     advance(&mut runs, c.steps)?;
     runs.par_iter_mut()
         .map_init(Scratch::default, |scratch, r| {
-            let mut f = Objective { problem, scratch, log_d: r.log_d, evaluations: r.evaluations };
+            let mut f = Objective { problem, scratch, log_d: start(&r.init).1, evaluations: r.evaluations };
             let (x, loss) = r.adam.finish(&mut f)?;
-            let (x, loss) = if loss <= r.init.loss { (x, loss) } else { (r.x0, r.init.loss) };
-            Ok(Refined { pose: f.pose(&x), loss, evaluations: f.evaluations })
+            Ok(settle(&f, &r.init, x, loss))
         })
         .collect()
 }
@@ -285,16 +289,13 @@ pub(super) fn refine_all(
 /// One hypothesis of [`refine_all`] between its rounds.
 struct Pruned {
     init: ScoredPose,
-    x0: [f64; 4],
-    log_d: [f64; 2],
     adam: AdamRun,
     evaluations: usize,
 }
 
 impl Pruned {
     fn new(init: &ScoredPose) -> Self {
-        let (x0, log_d) = start(init);
-        Pruned { init: *init, x0, log_d, adam: AdamRun::new(x0), evaluations: 0 }
+        Pruned { init: *init, adam: AdamRun::new(start(init).0), evaluations: 0 }
     }
 }
 
