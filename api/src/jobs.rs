@@ -178,6 +178,64 @@ pub struct Versions {
     pub activations: Vec<ActivationEntry>,
 }
 
+/// What a regression set holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum SetKind {
+    /// The held-out images of an activated job.
+    Job,
+    /// Images an operator uploaded with the anchor flag.
+    Anchor,
+}
+
+/// Images the gate guards: a candidate must not get worse on them beyond noise.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct RegressionSet {
+    /// "anchor", or the id of the job whose held-out images these are.
+    pub set_id: String,
+    pub kind: SetKind,
+    /// The job's activated version (empty for the anchor set).
+    pub version: String,
+    /// Seconds since the Unix epoch.
+    pub created: f64,
+    pub images: u32,
+}
+
+/// A category's regression sets, oldest first.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct RegressionSets {
+    pub sets: Vec<RegressionSet>,
+}
+
+impl From<RegressionSet> for pb::RegressionSet {
+    fn from(s: RegressionSet) -> Self {
+        let kind = match s.kind {
+            SetKind::Job => "JOB",
+            SetKind::Anchor => "ANCHOR",
+        };
+        pb::RegressionSet {
+            set_id: s.set_id,
+            kind: kind.into(),
+            version: s.version,
+            created: s.created,
+            images: s.images,
+        }
+    }
+}
+
+impl TryFrom<pb::RegressionSet> for RegressionSet {
+    type Error = String;
+
+    fn try_from(s: pb::RegressionSet) -> Result<Self, String> {
+        let kind = match s.kind.as_str() {
+            "JOB" => SetKind::Job,
+            "ANCHOR" => SetKind::Anchor,
+            other => return Err(format!("regression set kind {other:?} is not one this client knows")),
+        };
+        Ok(RegressionSet { set_id: s.set_id, kind, version: s.version, created: s.created, images: s.images })
+    }
+}
+
 fn some_if_set(s: String) -> Option<String> {
     (!s.is_empty()).then_some(s)
 }

@@ -12,7 +12,8 @@ mod tests;
 
 pub use estimate::{BoxAnswer, EstimateAnswer, HypothesisAnswer, PoseAnswer, Timings};
 pub use jobs::{
-    ActivationEntry, GateCriterion, JobEvent, JobList, JobState, JobView, UnknownState, VersionView, Versions,
+    ActivationEntry, GateCriterion, JobEvent, JobList, JobState, JobView, RegressionSet, RegressionSets, SetKind,
+    UnknownState, VersionView, Versions,
 };
 pub use models::{ModelDescription, ModelList, ModelSummary};
 pub use schema::{ErrorBody, ErrorDetail, schemas};

@@ -6,7 +6,8 @@ use utoipa::{OpenApi, ToSchema};
 
 use crate::{
     ActivationEntry, BoxAnswer, EstimateAnswer, GateCriterion, HypothesisAnswer, JobEvent, JobList, JobState, JobView,
-    ModelDescription, ModelList, ModelSummary, PoseAnswer, Timings, VersionView, Versions,
+    ModelDescription, ModelList, ModelSummary, PoseAnswer, RegressionSet, RegressionSets, SetKind, Timings,
+    VersionView, Versions,
 };
 
 /// Every error answer of the HTTP API.
@@ -49,6 +50,9 @@ impl ErrorBody {
     VersionView,
     ActivationEntry,
     Versions,
+    SetKind,
+    RegressionSet,
+    RegressionSets,
 )))]
 struct Contract;
 

@@ -4,6 +4,7 @@
 //! machine. Each writes a JSON report and its Markdown twin under `reports/`.
 
 mod bad_inputs;
+mod continual;
 mod gate;
 mod harness;
 mod input;
@@ -45,6 +46,10 @@ enum Bench {
     /// What an estimate's input costs against one backbone pass: JPEG decoding at full and
     /// reduced size and cropping (320×128, 1280×512, 4000×3000), and requests with 1, 4, 16 boxes.
     Input(input::InputArgs),
+    /// Online adaptation over a sequence of domains through real servers: after each job,
+    /// Acc@π/6 on every domain of the sequence, the gate's verdict, and the job's time; rows
+    /// with no adaptation, each job judged alone, and the gate guarding earlier domains.
+    Continual(continual::ContinualArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -55,6 +60,7 @@ fn main() -> anyhow::Result<()> {
         Bench::Gate(a) => gate::run(&a),
         Bench::Scale(a) => scale::run(&a),
         Bench::Input(a) => input::run(&a),
+        Bench::Continual(a) => continual::run(&a),
     }
 }
 

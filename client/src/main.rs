@@ -167,6 +167,9 @@ enum JobsCommand {
     },
     /// One job in detail, with its last event.
     Get { id: String },
+    /// The regression sets the gate guards for a category (SET KIND VERSION IMAGES CREATED):
+    /// the held-out images of every activated job and the anchor images, oldest first.
+    Sets { category: String },
     /// Follow a job's events until it ends.
     #[command(after_long_help = WATCH_HELP)]
     Watch {
@@ -327,6 +330,19 @@ async fn jobs_command(client: &Client, action: JobsCommand, json: bool) -> Resul
                 println!("{}", output::job_json(&job)?);
             } else {
                 output::job_lines(&job).iter().for_each(|l| println!("{l}"));
+            }
+        }
+        JobsCommand::Sets { category } => {
+            let sets = client.list_regression_sets(&category).await.context("listing regression sets")?;
+            if json {
+                let sets: Vec<udapose_api::RegressionSet> = sets
+                    .into_iter()
+                    .map(TryInto::try_into)
+                    .collect::<Result<_, String>>()
+                    .map_err(anyhow::Error::msg)?;
+                println!("{}", json!({ "sets": sets }));
+            } else {
+                output::regression_sets_table(&sets).iter().for_each(|l| println!("{l}"));
             }
         }
         JobsCommand::Watch { id, after_seq } => return follow::watch(client, &id, after_seq, json).await,

@@ -221,6 +221,21 @@ pub fn jobs_table(jobs: &[Job]) -> Vec<String> {
     table(["JOB", "CATEGORY", "STATE", "ROUND", "IMAGES", "VERSION", "UPDATED", "REASON"], &rows)
 }
 
+/// The regression sets table: `SET  KIND  VERSION  IMAGES  CREATED`.
+pub fn regression_sets_table(sets: &[udapose_proto::v1::RegressionSet]) -> Vec<String> {
+    if sets.is_empty() {
+        return vec!["no regression sets (an activated job leaves its held-out images here)".into()];
+    }
+    let rows: Vec<[String; 5]> = sets
+        .iter()
+        .map(|s| {
+            let created = if s.created > 0.0 { utc(s.created) } else { "-".into() };
+            [s.set_id.clone(), s.kind.clone(), dash(&s.version).to_owned(), s.images.to_string(), created]
+        })
+        .collect();
+    table(["SET", "KIND", "VERSION", "IMAGES", "CREATED"], &rows)
+}
+
 /// The versions table (`VERSION  ACTIVE  TRAINED_AS  JOB`), a blank line, and the activation
 /// log (`GENERATION  VERSION  PREVIOUS  ACTOR  TIME  REASON`, newest first).
 pub fn versions_lines(v: &ListVersionsResponse) -> Vec<String> {

@@ -23,7 +23,8 @@ use udapose_client::{
     target_ack::{self, Rejection},
 };
 use udapose_proto::v1::{
-    CancelJobRequest, GetJobRequest, ListJobsRequest, ListJobsResponse, StartJobRequest, TargetImage, WatchJobRequest,
+    CancelJobRequest, GetJobRequest, ListJobsRequest, ListJobsResponse, ListRegressionSetsRequest,
+    ListRegressionSetsResponse, StartJobRequest, TargetImage, WatchJobRequest,
     adaptation_service_server::{AdaptationService, AdaptationServiceServer},
 };
 
@@ -189,6 +190,13 @@ impl AdaptationService for Svc {
     }
 
     async fn cancel_job(&self, _: Request<CancelJobRequest>) -> Result<Response<Job>, Status> {
+        Err(Status::unimplemented("not in the fake"))
+    }
+
+    async fn list_regression_sets(
+        &self,
+        _: Request<ListRegressionSetsRequest>,
+    ) -> Result<Response<ListRegressionSetsResponse>, Status> {
         Err(Status::unimplemented("not in the fake"))
     }
 }

@@ -87,6 +87,10 @@ pub struct GateConfig {
     /// car (colour fields and stripes, tests/tests/adapt.rs) give quick models 0.01–0.02 (at
     /// 0.01 one passed the check). Both margins are thin; contrast is the one at risk.
     pub min_target_fired: f64,
+    /// On each regression set (held-out images of earlier jobs, anchor images), a criterion of
+    /// [`guard`] may fall below the active model's by at most this many standard errors of its
+    /// paired per-image difference: 2, the flip-consistency rule's.
+    pub regression_se: f64,
     /// The solver both models are measured with.
     pub solver: SolverConfig,
 }
@@ -100,6 +104,7 @@ impl Default for GateConfig {
             entropy_floor: 1.0,
             min_images: 4,
             min_target_fired: 0.02,
+            regression_se: 2.0,
             solver: SolverConfig::default(),
         }
     }
@@ -116,13 +121,17 @@ impl GateConfig {
             ("flip_se", self.flip_se),
             ("entropy_drop", self.entropy_drop),
             ("entropy_floor", self.entropy_floor),
+            ("regression_se", self.regression_se),
         ] {
             if !v.is_finite() {
                 return bad(format!("gate {name} must be finite, got {v}"));
             }
         }
-        if self.flip_se < 0.0 || self.entropy_drop < 0.0 {
-            return bad(format!("gate flip_se {} and entropy_drop {} must be >= 0", self.flip_se, self.entropy_drop));
+        if self.flip_se < 0.0 || self.entropy_drop < 0.0 || self.regression_se < 0.0 {
+            return bad(format!(
+                "gate flip_se {}, entropy_drop {} and regression_se {} must be >= 0",
+                self.flip_se, self.entropy_drop, self.regression_se
+            ));
         }
         if self.min_images == 0 {
             return bad("gate min_images must be at least 1".into());
@@ -360,6 +369,33 @@ impl Decision {
 /// Compares the candidate's checks with the active model's on the same images (same order).
 /// Errors when the lengths differ or there are fewer than `config.min_images` images.
 pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Result<Decision> {
+    comparable(active, candidate, config)?;
+    let criteria = vec![
+        flip_criterion(active, candidate, config.flip_se),
+        margin_criterion(active, candidate, config),
+        diversity_criterion(active, candidate, config),
+    ];
+    Ok(Decision { passed: criteria.iter().all(|c| c.passed), criteria })
+}
+
+/// The regression rule, for a set of images of a domain an earlier job adapted to (or an
+/// operator's anchor images): the candidate need not improve there, only not get worse beyond
+/// noise. Flip consistency and the mean score margin may each fall by at most `regression_se`
+/// standard errors of their paired per-image difference; pose diversity has [`decide`]'s rule.
+/// The same checks on the new domain demand a rising margin; here a falling one is what
+/// forgetting looks like (the features stop matching the mesh on that domain).
+pub fn guard(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Result<Decision> {
+    comparable(active, candidate, config)?;
+    let criteria = vec![
+        flip_criterion(active, candidate, config.regression_se),
+        mean_margin_criterion(active, candidate, config.regression_se),
+        diversity_criterion(active, candidate, config),
+    ];
+    Ok(Decision { passed: criteria.iter().all(|c| c.passed), criteria })
+}
+
+/// Both models measured on the same (enough) images, with finite values.
+fn comparable(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Result<()> {
     config.validate()?;
     let n = active.images.len();
     if candidate.images.len() != n {
@@ -378,32 +414,50 @@ pub fn decide(active: &GateStats, candidate: &GateStats, config: &GateConfig) ->
     if !finite(active) || !finite(candidate) {
         return Err(EngineError::InvalidInput("non-finite azimuth, score or margin in the gate's checks".into()));
     }
-    let criteria = vec![
-        flip_criterion(active, candidate, config),
-        margin_criterion(active, candidate, config),
-        diversity_criterion(active, candidate, config),
-    ];
-    Ok(Decision { passed: criteria.iter().all(|c| c.passed), criteria })
+    Ok(())
 }
 
-/// Flip consistency may fall by at most `flip_se` paired standard errors.
-fn flip_criterion(active: &GateStats, candidate: &GateStats, config: &GateConfig) -> Criterion {
-    let n = active.images.len();
-    // Flip consistency: paired difference d_i = c_i − a_i of the 0/1 outcomes.
-    let (fa, fc) = (active.flip_rate(), candidate.flip_rate());
-    let d: Vec<f64> = active
-        .images
-        .iter()
-        .zip(&candidate.images)
-        .map(|(a, c)| f64::from(u8::from(c.flip_consistent)) - f64::from(u8::from(a.flip_consistent)))
-        .collect();
-    let mean = d.iter().sum::<f64>() / n as f64;
-    let se = if n > 1 {
-        (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt() / (n as f64).sqrt()
+/// Mean and standard error of the paired differences `candidate_i − active_i` (SE 0 for one).
+fn paired(active: &GateStats, candidate: &GateStats, value: impl Fn(&ImageCheck) -> f64) -> (f64, f64) {
+    let d: Vec<f64> = active.images.iter().zip(&candidate.images).map(|(a, c)| value(c) - value(a)).collect();
+    let n = d.len() as f64;
+    let mean = d.iter().sum::<f64>() / n;
+    let se = if d.len() > 1 {
+        (d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt() / n.sqrt()
     } else {
         0.0
     };
-    let flip_threshold = fa - config.flip_se * se;
+    (mean, se)
+}
+
+/// The mean score margin may fall by at most `se_allowed` paired standard errors.
+fn mean_margin_criterion(active: &GateStats, candidate: &GateStats, se_allowed: f64) -> Criterion {
+    let mean = |s: &GateStats| s.images.iter().map(|c| c.margin).sum::<f64>() / s.images.len() as f64;
+    let (ma, mc) = (mean(active), mean(candidate));
+    let (_, se) = paired(active, candidate, |c| c.margin);
+    let threshold = ma - se_allowed * se;
+    Criterion {
+        name: "score_margin".into(),
+        active: ma,
+        candidate: mc,
+        threshold,
+        passed: mc >= threshold,
+        detail: format!(
+            "mean score margin over the best grid pose more than {:.0}° away: candidate {mc:.4}, active {ma:.4} over \
+             {} images; may fall by {se_allowed} × paired SE {se:.4}, so needs >= {threshold:.4}",
+            MARGIN_SEPARATION.to_degrees(),
+            active.images.len()
+        ),
+    }
+}
+
+/// Flip consistency may fall by at most `se_allowed` paired standard errors.
+fn flip_criterion(active: &GateStats, candidate: &GateStats, se_allowed: f64) -> Criterion {
+    let n = active.images.len();
+    let (fa, fc) = (active.flip_rate(), candidate.flip_rate());
+    // Paired difference d_i = c_i − a_i of the 0/1 outcomes.
+    let (_, se) = paired(active, candidate, |c| f64::from(u8::from(c.flip_consistent)));
+    let flip_threshold = fa - se_allowed * se;
     Criterion {
         name: "flip_consistency".into(),
         active: fa,
@@ -412,9 +466,8 @@ fn flip_criterion(active: &GateStats, candidate: &GateStats, config: &GateConfig
         passed: fc >= flip_threshold,
         detail: format!(
             "flip-consistent images (mirrored estimate within {:.0}° of (−a, e, −θ)): candidate {fc:.3}, active {fa:.3} \
-             over {n} images; may fall by {} × paired SE {se:.3}, so needs >= {flip_threshold:.3}",
+             over {n} images; may fall by {se_allowed} × paired SE {se:.3}, so needs >= {flip_threshold:.3}",
             FLIP_TOLERANCE.to_degrees(),
-            config.flip_se
         ),
     }
 }

@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::error::EngineError;
 use udapose_engine::gate::{
-    self, Decision, GateConfig, GateStats, ImageCheck, decide, flip_consistent, held_out, measure, mirror_crops,
+    self, Decision, GateConfig, GateStats, ImageCheck, decide, flip_consistent, guard, held_out, measure, mirror_crops,
     mirrored,
 };
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
@@ -290,6 +290,41 @@ fn flip_rule_allows_two_paired_standard_errors() {
     let a = stats(&margins, &(0..n).map(|i| i % 2 == 0).collect::<Vec<_>>());
     let c = stats(&margins, &(0..n).map(|i| i % 2 == 1).collect::<Vec<_>>());
     assert!(decide(&a, &c, &strict).unwrap().passed);
+}
+
+#[test]
+fn the_regression_rule_tolerates_noise_but_not_a_fall() {
+    // On an earlier domain's images the candidate need not improve: the active model itself
+    // passes (where decide() demands a rising margin), and so does a small, noisy change.
+    let config = GateConfig::default();
+    let n = 24;
+    let active = healthy(n);
+    let d = guard(&active, &active, &config).unwrap();
+    let names: Vec<&str> = d.criteria.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["flip_consistency", "score_margin", "pose_diversity"]);
+    assert!(d.passed, "{}", d.reason());
+    assert!(!decide(&active, &active, &config).unwrap().passed);
+    let mut jittered = active.clone();
+    jittered.images.iter_mut().enumerate().for_each(|(i, c)| c.margin += if i % 2 == 0 { 0.004 } else { -0.0045 });
+    assert!(guard(&active, &jittered, &config).unwrap().passed);
+    // Forgetting: every margin falls by more than the noise allows.
+    let mut forgot = active.clone();
+    forgot.images.iter_mut().enumerate().for_each(|(i, c)| c.margin -= 0.01 + 0.001 * (i % 3) as f64);
+    let d = guard(&active, &forgot, &config).unwrap();
+    let m = criterion(&d, "score_margin");
+    assert!(!d.passed && !m.passed && m.candidate < m.threshold, "{m:?}");
+    assert!(criterion(&d, "flip_consistency").passed && d.reason().starts_with("score_margin: "), "{}", d.reason());
+    // The threshold is the active mean less regression_se paired standard errors: with
+    // regression_se 0, any fall of the mean fails.
+    let mean = |s: &GateStats| s.images.iter().map(|c| c.margin).sum::<f64>() / n as f64;
+    let strict = GateConfig { regression_se: 0.0, ..config.clone() };
+    let m = criterion(&guard(&active, &jittered, &strict).unwrap(), "score_margin").clone();
+    assert!((m.threshold - mean(&active)).abs() < 1e-15 && !m.passed, "{m:?}");
+    // Flip consistency follows the flip rule with regression_se: 4 of 12 lost fail at 2 SE.
+    let flips = |k: usize| stats(&[0.05; 12], &(0..12).map(|i| i >= k).collect::<Vec<_>>());
+    assert!(guard(&flips(0), &flips(3), &config).unwrap().passed);
+    assert!(!criterion(&guard(&flips(0), &flips(4), &config).unwrap(), "flip_consistency").passed);
+    assert!(GateConfig { regression_se: -1.0, ..config }.validate().is_err());
 }
 
 #[test]

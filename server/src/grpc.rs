@@ -241,7 +241,7 @@ impl AdaptationService for Api {
             // In order, one ack per image, each sent once its image is durable.
             while let Some(image) = images.next().await {
                 let ack = match image {
-                    Ok(t) => match service.put_target(&t.category, t.image.into()).await {
+                    Ok(t) => match service.put_target(&t.category, t.image.into(), t.anchor).await {
                         Ok(ack) => to_ack(ack),
                         Err(e) => pb::TargetAck {
                             status: pb::target_ack::Status::Rejected as i32,
@@ -301,6 +301,16 @@ impl AdaptationService for Api {
         let r = request.into_inner();
         let job = self.service.cancel_job(r.job_id, r.reason).await.map_err(|e| self.refuse(e, "grpc"))?;
         Ok(Response::new(job.into()))
+    }
+
+    async fn list_regression_sets(
+        &self,
+        request: Request<pb::ListRegressionSetsRequest>,
+    ) -> Result<Response<pb::ListRegressionSetsResponse>, Status> {
+        self.authorize(&request, Role::Read)?;
+        let sets =
+            self.service.regression_sets(&request.get_ref().category).await.map_err(|e| self.refuse(e, "grpc"))?;
+        Ok(Response::new(pb::ListRegressionSetsResponse { sets: sets.into_iter().map(Into::into).collect() }))
     }
 }
 

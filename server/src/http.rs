@@ -68,6 +68,7 @@ pub fn router(service: Arc<Service>) -> Router {
         .route("/v1/pose/{category}", post(estimate))
         .route("/v1/adapt/{category}/images", post(put_targets))
         .route("/v1/adapt/{category}/jobs", post(start_job))
+        .route("/v1/adapt/{category}/regression-sets", get(regression_sets))
         .route("/v1/jobs", get(list_jobs))
         .route("/v1/jobs/{id}", get(get_job))
         .route("/v1/jobs/{id}/events", get(job_events))
@@ -247,8 +248,9 @@ async fn switch_version(
     entry.map(Json).map_err(|e| refuse(service, e))
 }
 
-/// `POST /v1/adapt/{category}/images`: one image as the raw body, or many as the parts of a
-/// multipart form. 200 with one result per image; `Retry-After` when any met a full buffer.
+/// `POST /v1/adapt/{category}/images[?anchor=true]`: one image as the raw body, or many as the
+/// parts of a multipart form, for the buffer (or the anchor set). 200 with one result per image;
+/// `Retry-After` when any met a full buffer.
 async fn put_targets(
     State(service): State<Arc<Service>>,
     Path(category): Path<String>,
@@ -256,10 +258,18 @@ async fn put_targets(
 ) -> Result<Response, HttpError> {
     authorize(&service, request.headers(), Role::Write)?;
     service.category(&category).map_err(|e| refuse(&service, e))?;
+    let anchor = match query_value(request.uri().query(), "anchor").as_deref() {
+        None | Some("false") => false,
+        Some("true") => true,
+        Some(other) => {
+            let why = format!("anchor must be true or false, got {other:?}");
+            return Err(refuse(&service, ApiError::InvalidArgument(why)));
+        }
+    };
     let images = read_images(&service, request).await.map_err(|e| refuse(&service, e))?;
     let mut results = Vec::with_capacity(images.len());
     for image in images {
-        results.push(service.put_target(&category, image).await.map_err(|e| refuse(&service, e))?);
+        results.push(service.put_target(&category, image, anchor).await.map_err(|e| refuse(&service, e))?);
     }
     let full = results.iter().any(|a| a.rejection == Some(udapose_service::jobs::Rejection::BufferFull));
     let mut response = Json(json!({ "results": results })).into_response();
@@ -287,6 +297,16 @@ async fn start_job(
     let b: StartJobBody = json_body(&service, &body)?;
     let job = service.start_job(&category, b.overrides, b.client_job_id).await;
     job.map(Json).map_err(|e| refuse(&service, e))
+}
+
+async fn regression_sets(
+    State(service): State<Arc<Service>>,
+    headers: HeaderMap,
+    Path(category): Path<String>,
+) -> Result<Json<udapose_api::RegressionSets>, HttpError> {
+    authorize(&service, &headers, Role::Read)?;
+    let sets = service.regression_sets(&category).await.map_err(|e| refuse(&service, e))?;
+    Ok(Json(udapose_api::RegressionSets { sets }))
 }
 
 async fn list_jobs(

@@ -25,6 +25,7 @@ use udapose_service::{
     jobs::{Jobs, JobsConfig},
     metrics::Metrics,
     registry::Registry,
+    regression::RegressionConfig,
     service::{Limits, Service},
     store::{S3Options, Store},
     worker::WorkerConfig,
@@ -72,6 +73,11 @@ struct Args {
     /// validate elsewhere).
     #[arg(long, value_enum, default_value = "enforce")]
     gate: GatePolicy,
+    /// Neither keep regression sets nor guard them: each job is judged on its own held-out
+    /// images alone, so a job may give back what earlier ones won (for comparisons:
+    /// `udapose-bench continual`'s "independent" row).
+    #[arg(long)]
+    no_regression_sets: bool,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
@@ -274,6 +280,7 @@ fn jobs_config(
         min_images: args.adapt_min_images as usize,
         adapt: AdaptConfig::default(),
         gate: GateConfig::default(),
+        regression: RegressionConfig { enabled: !args.no_regression_sets, ..Default::default() },
         device: runtime.device(),
         decode: limits.decode,
         runs_jobs: args.role != Role::Serve,

@@ -73,7 +73,8 @@ fn paths() -> Value {
             "requestBody": { "content": { "application/json": { "schema": { "type": "object",
                 "properties": { "reason": { "type": "string" }, "expected_generation": { "type": "integer" } } } } } },
             "responses": { "200": { "description": "The new activation-log entry", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Activation" } } } }, "400": err("Nothing to roll back to (FAILED_PRECONDITION)"), "409": err("Stale expected_generation (ABORTED)") } } },
-        "/v1/adapt/{category}/images": { "post": { "summary": "Buffer target-domain images for adaptation (write)", "parameters": [category],
+        "/v1/adapt/{category}/images": { "post": { "summary": "Buffer target-domain images for adaptation, or with ?anchor=true keep them in the anchor set the gate guards (write)",
+            "parameters": [category, { "name": "anchor", "in": "query", "schema": { "type": "boolean" } }],
             "requestBody": { "required": true, "content": {
                 "image/png": { "schema": { "type": "string", "format": "binary" } },
                 "multipart/form-data": { "schema": { "type": "object", "description": "one image per part" } } } },
@@ -85,6 +86,8 @@ fn paths() -> Value {
                 "client_job_id": { "type": "string", "description": "makes the call idempotent" } } } } } },
             "responses": { "200": { "description": "The job", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Job" } } } },
                 "400": err("Too few buffered images (FAILED_PRECONDITION)"), "404": err("Unknown category") } } },
+        "/v1/adapt/{category}/regression-sets": { "get": { "summary": "The regression sets the gate guards (held-out images of activated jobs, anchor images), oldest first", "parameters": [category],
+            "responses": { "200": { "description": "The sets", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/RegressionSets" } } } }, "404": err("Unknown category") } } },
         "/v1/jobs": { "get": { "summary": "Jobs, newest first", "parameters": [{ "name": "category", "in": "query", "schema": { "type": "string" } }],
             "responses": { "200": { "description": "Jobs, newest first", "content": { "application/json": { "schema": { "$ref": "#/components/schemas/Jobs" } } } } } } },
         "/v1/jobs/{id}": { "get": { "summary": "One job", "parameters": [{ "name": "id", "in": "path", "required": true, "schema": { "type": "string" } }],

@@ -10,6 +10,7 @@ pub mod error;
 pub mod jobs;
 pub mod metrics;
 pub mod registry;
+pub mod regression;
 pub mod service;
 pub mod store;
 pub mod views;

@@ -356,8 +356,8 @@ impl Service {
         Ok(entry)
     }
 
-    /// Buffers one target image (decoding off the runtime).
-    pub async fn put_target(&self, category: &str, bytes: bytes::Bytes) -> Result<TargetAck, ApiError> {
+    /// Buffers one target image, or keeps it in the anchor set (decoding off the runtime).
+    pub async fn put_target(&self, category: &str, bytes: bytes::Bytes, anchor: bool) -> Result<TargetAck, ApiError> {
         let name = self.category(category)?.name.clone();
         if bytes.len() > self.limits.max_request_bytes {
             return Err(ApiError::TooLarge(format!("image over the limit of {} bytes", self.limits.max_request_bytes)));
@@ -368,7 +368,14 @@ impl Service {
         let _in_flight = self.reserve(cost, Instant::now() + self.limits.default_timeout).await?;
         let _slot = self.decode_slot().await?;
         let jobs = self.jobs.clone();
-        blocking(move || Ok(jobs.put_target(&name, &bytes))).await
+        blocking(move || Ok(jobs.put_target(&name, &bytes, anchor))).await
+    }
+
+    /// The regression sets the gate guards for `category`, oldest first.
+    pub async fn regression_sets(&self, category: &str) -> Result<Vec<udapose_api::RegressionSet>, ApiError> {
+        let name = self.category(category)?.name.clone();
+        let jobs = self.jobs.clone();
+        blocking(move || jobs.regression_sets(&name)).await
     }
 }
 

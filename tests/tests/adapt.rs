@@ -529,3 +529,99 @@ fn a_job_never_activates_over_a_newer_generation_and_can_be_cancelled() {
     assert_eq!(j["state"], "CANCELLED", "{j}");
     assert_eq!(active_version(&server), "operator");
 }
+
+/// Activates `version` and waits until it answers.
+fn serve_version(server: &Server, version: &str, probe: &QuickImage) {
+    let body = format!(r#"{{"version":"{version}","reason":"test"}}"#);
+    let r = server.request("POST", "/v1/models/car/activate", &[], body.as_bytes());
+    assert_eq!(r.status, 200, "{}", r.body);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while estimate(server, probe)["model_version"] != version {
+        assert!(Instant::now() < deadline, "{version} never served\n{}", server.log());
+        thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// How many of `images` the active version gets right at π/6.
+fn right(server: &Server, images: &[QuickImage]) -> usize {
+    accuracy(server, images).0.iter().filter(|&&h| h).count()
+}
+
+/// Uploads one domain's adapt images, runs a job on them to its end; the job.
+fn job_on(server: &Server, domain: &str) -> Value {
+    let acks = upload(server, &adapt_images(domain));
+    assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"), "{acks:?}");
+    let id = start_job(server);
+    wait_job(server, &id, "finished", terminal)
+}
+
+#[test]
+fn a_job_that_would_erase_an_earlier_gain_is_rejected() {
+    let server = server("adapt-continual");
+    let seed = active_version(&server);
+    let fog_test = quick_images("corrupt/fog", 60);
+
+    // Step 1: fog. The job wins fog (lab/tests/adapt.rs) and leaves its held-out images as a
+    // regression set, listed by the HTTP API and `udapose jobs sets`.
+    let fog = job_on(&server, "corrupt/fog");
+    assert_eq!(fog["state"], "ACTIVATED", "{fog}\n{}", server.log());
+    let (fog_id, fog_version) = (fog["job_id"].as_str().unwrap(), fog["version"].as_str().unwrap());
+    let (status, body) = server.get("/v1/adapt/car/regression-sets");
+    assert_eq!(status, 200, "{body}");
+    let sets: Value = serde_json::from_str(&body).unwrap();
+    let set = &sets["sets"][0];
+    assert_eq!(sets["sets"].as_array().unwrap().len(), 1, "{sets}");
+    assert_eq!(
+        (set["set_id"].as_str(), set["kind"].as_str(), set["version"].as_str()),
+        (Some(fog_id), Some("JOB"), Some(fog_version))
+    );
+    assert_eq!(set["images"], fog["images_held_out"].as_u64().unwrap().min(32), "{set}");
+    let (ok, stdout, stderr) = udapose(&server, &["jobs", "sets", "car"]);
+    assert!(
+        ok && stdout.lines().nth(1).is_some_and(|l| l.starts_with(fog_id) && l.contains("JOB")),
+        "{stdout}{stderr}"
+    );
+
+    // Step 2: clear-weather images. On its own domain the candidate beats the fog model (its
+    // BatchNorm statistics return to clear images), and on fog it gives back what step 1 won:
+    // the gate measures that on the fog set, label-free, and refuses it.
+    let clear = job_on(&server, "source");
+    let gate = clear["last_event"]["gate"].as_array().unwrap();
+    let guarded: Vec<&Value> =
+        gate.iter().filter(|c| c["name"].as_str().unwrap().starts_with(&format!("{fog_id}/"))).collect();
+    let names: Vec<&str> = guarded.iter().map(|c| c["name"].as_str().unwrap().split('/').nth(1).unwrap()).collect();
+    assert_eq!(names, ["flip_consistency", "score_margin", "pose_diversity"], "{gate:?}");
+    let verdict = format!("{guarded:?}");
+    assert_eq!(active_version(&server), fog_version);
+    let fog_right = right(&server, &fog_test);
+    serve_version(&server, clear["version"].as_str().unwrap(), &fog_test[0]);
+    let clear_right = right(&server, &fog_test);
+    serve_version(&server, &seed, &fog_test[0]);
+    let seed_right = right(&server, &fog_test);
+    eprintln!(
+        "fog test Acc@π/6: seed {seed_right}/60, fog job {fog_right}/60, clear job on top {clear_right}/60; fog set: {verdict}"
+    );
+    assert!(guarded.iter().any(|c| c["passed"] == false), "the fog set's verdict: {verdict}");
+    assert_eq!(clear["state"], "REJECTED", "{clear}");
+    let reason = clear["reason"].as_str().unwrap();
+    assert!(reason.contains(&format!("regress on regression set {fog_id}")), "{reason}");
+    // The labels agree with the verdict: the refused version is worse on fog.
+    assert!(clear_right < fog_right, "fog: {fog_right} → {clear_right} of 60");
+
+    // An operator's anchor images: the upload route with ?anchor=true keeps them in their own
+    // set (listed first), not in the buffer; a resend is a DUPLICATE; a bad flag is refused.
+    let clear_test = quick_images("source", 5);
+    for (i, image) in clear_test.iter().chain(&clear_test[..1]).enumerate() {
+        let r = server.request("POST", "/v1/adapt/car/images?anchor=true", &[], &image.bytes);
+        assert_eq!(r.status, 200, "{}", r.body);
+        let status = r.json()["results"][0]["status"].as_str().unwrap().to_owned();
+        assert_eq!(status, if i < 5 { "ACCEPTED" } else { "DUPLICATE" }, "{}", r.body);
+    }
+    let r = server.request("POST", "/v1/adapt/car/images?anchor=yes", &[], &clear_test[0].bytes);
+    assert_eq!((r.status, r.json()["error"]["code"].as_str()), (400, Some("INVALID_ARGUMENT")), "{}", r.body);
+    let (_, body) = server.get("/v1/adapt/car/regression-sets");
+    let sets: Value = serde_json::from_str(&body).unwrap();
+    let ids: Vec<&str> = sets["sets"].as_array().unwrap().iter().map(|s| s["set_id"].as_str().unwrap()).collect();
+    assert_eq!(ids, ["anchor", fog_id], "{sets}");
+    assert_eq!((sets["sets"][0]["kind"].as_str(), sets["sets"][0]["images"].as_u64()), (Some("ANCHOR"), Some(5)));
+}

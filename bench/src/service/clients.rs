@@ -72,14 +72,14 @@ pub(super) fn others_cores(from: Option<Cpu>, to: Option<Cpu>) -> Option<f64> {
 
 /// Client threads sending estimates back to back (images in rotation) until stopped; every
 /// request is recorded with its start, end and answering version.
-pub(super) struct Clients {
+pub(crate) struct Clients {
     stop: Arc<AtomicBool>,
     records: Arc<Mutex<Vec<Record>>>,
     threads: Vec<JoinHandle<()>>,
 }
 
 impl Clients {
-    pub(super) fn start(http: SocketAddr, images: &Arc<Vec<Vec<u8>>>, n: usize) -> Self {
+    pub(crate) fn start(http: SocketAddr, images: &Arc<Vec<Vec<u8>>>, n: usize) -> Self {
         let stop = Arc::new(AtomicBool::new(false));
         let records = Arc::new(Mutex::new(Vec::new()));
         let threads = (0..n)
@@ -108,7 +108,7 @@ impl Clients {
     }
 
     /// Stops the clients (each finishes its request in flight) and returns every record.
-    pub(super) fn stop(mut self) -> Vec<Record> {
+    pub(crate) fn stop(mut self) -> Vec<Record> {
         self.stop.store(true, Ordering::Release);
         for t in std::mem::take(&mut self.threads) {
             let _ = t.join();

@@ -10,7 +10,7 @@
 
 mod adapt;
 mod ceiling;
-mod clients;
+pub(crate) mod clients;
 mod report;
 mod swap;
 

@@ -13,8 +13,9 @@ use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt, wrappers::ReceiverStream};
 use tonic::{Status, Streaming};
 use udapose_proto::v1::{
-    AdaptOverrides, CancelJobRequest, GetJobRequest, Job, JobEvent, JobState, ListJobsRequest, StartJobRequest,
-    TargetAck, TargetImage, WatchJobRequest, adaptation_service_client::AdaptationServiceClient, target_ack,
+    AdaptOverrides, CancelJobRequest, GetJobRequest, Job, JobEvent, JobState, ListJobsRequest,
+    ListRegressionSetsRequest, RegressionSet, StartJobRequest, TargetAck, TargetImage, WatchJobRequest,
+    adaptation_service_client::AdaptationServiceClient, target_ack,
 };
 
 use crate::{Client, Error, MAX_BUFFER_FULL_BACKOFF, Replies, Tries};
@@ -171,6 +172,18 @@ impl Client {
             )
             .await?;
         Ok(response.into_inner().jobs)
+    }
+
+    /// The category's regression sets (what the gate guards besides a job's own held-out
+    /// images), oldest first.
+    pub async fn list_regression_sets(&self, category: &str) -> Result<Vec<RegressionSet>, Error> {
+        let message = &ListRegressionSetsRequest { category: category.into() };
+        let response = self
+            .retrying(|ch| async move {
+                AdaptationServiceClient::new(ch).list_regression_sets(self.request(message.clone())).await
+            })
+            .await?;
+        Ok(response.into_inner().sets)
     }
 
     /// Stops a queued or running job (CANCELLED); a finished job comes back unchanged. Sent
@@ -422,7 +435,7 @@ impl Ledger {
     fn send_next(&mut self, category: &str) -> Option<TargetImage> {
         let mut pending = self.to_send.pop_front()?;
         pending.sends += 1;
-        let message = TargetImage { category: category.into(), image: pending.image.clone() };
+        let message = TargetImage { category: category.into(), image: pending.image.clone(), anchor: false };
         self.in_flight.push_back(pending);
         Some(message)
     }

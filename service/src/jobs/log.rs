@@ -71,6 +71,11 @@ impl Jobs {
                 // below, what was running was this process's and is run again).
                 _ if !restart => {}
                 Some(JobState::Validating) if self.activated_by(&spec)? => {
+                    // Its regression set was written before the activation; complete it if the
+                    // crash tore it (its images are still buffered).
+                    if let Err(e) = self.record_set(&spec) {
+                        tracing::warn!(job = %id, "completing the job's regression set: {e:#}");
+                    }
                     self.append(&id, JobState::Activated, |e| {
                         e.message = "found in the activation log after a restart".into();
                     })?;

@@ -51,6 +51,7 @@ use crate::{
     decode,
     error::ApiError,
     registry::Registry,
+    regression::{Regression, RegressionSet},
     store::{Store, nanos},
 };
 use udapose_engine::input;
@@ -73,6 +74,8 @@ struct Inner {
 pub struct Jobs {
     store: Store,
     pub buffer: Buffer,
+    /// What the gate guards besides the job's own held-out images.
+    pub regression: Regression,
     registry: Arc<Registry>,
     config: JobsConfig,
     /// The jobs this process knows; never held across a store call.
@@ -103,9 +106,11 @@ impl Jobs {
             .thread_name(|i| format!("adapt-solve-{i}"))
             .build()
             .context("building the adaptation jobs' thread pool")?;
+        let regression = Regression::new(store.clone(), config.regression.clone());
         let jobs = Arc::new(Jobs {
             store,
             buffer,
+            regression,
             registry,
             config,
             inner: Mutex::new(Inner::default()),
@@ -151,8 +156,9 @@ impl Jobs {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Validates and buffers one target image; may start a job by policy.
-    pub fn put_target(&self, category: &str, bytes: &[u8]) -> TargetAck {
+    /// Validates and buffers one target image (or, `anchor`, keeps it in the category's anchor
+    /// set); may start a job by policy.
+    pub fn put_target(&self, category: &str, bytes: &[u8], anchor: bool) -> TargetAck {
         let sha256 = crate::buffer::sha256_hex(bytes);
         let capacity = self.buffer.capacity;
         let rejected = |why: Rejection, detail: String| TargetAck {
@@ -174,6 +180,29 @@ impl Jobs {
                 Rejection::InvalidImage,
                 format!("{}x{} px; at least {min}x{min}", pixels.width, pixels.height),
             );
+        }
+        if anchor {
+            let max = self.regression.config.max_anchor;
+            return match self.regression.put_anchor(category, bytes) {
+                Ok((AckStatus::Rejected, held)) => TargetAck {
+                    buffered: held,
+                    capacity: max,
+                    ..rejected(
+                        Rejection::BufferFull,
+                        format!("the {category} anchor set holds {held} of {max} images, its most"),
+                    )
+                },
+                Ok((status, held)) => TargetAck {
+                    sha256,
+                    status,
+                    rejection: None,
+                    reason: String::new(),
+                    buffered: held,
+                    capacity: max,
+                    job_id: None,
+                },
+                Err(e) => rejected(Rejection::Storage, e.to_string()),
+            };
         }
         match self.buffer.put(category, bytes, pixels.width as u32, pixels.height as u32) {
             Ok((AckStatus::Rejected, buffered)) => TargetAck {
@@ -242,6 +271,13 @@ impl Jobs {
         }
         // A running job stops at its next progress report and records CANCELLED itself.
         self.get(id)
+    }
+
+    /// The category's regression sets, oldest first (see `regression.rs`).
+    pub fn regression_sets(&self, category: &str) -> Result<Vec<RegressionSet>, ApiError> {
+        let sets =
+            self.regression.sets(category).map_err(|e| ApiError::Internal(format!("reading regression sets: {e}")))?;
+        Ok(sets.into_iter().map(|s| s.set).collect())
     }
 
     /// New events of every job.

@@ -11,7 +11,7 @@ use udapose_engine::{
     gate::{self, GateConfig},
 };
 
-use crate::{buffer::AckStatus, decode::DecodeLimits};
+use crate::{buffer::AckStatus, decode::DecodeLimits, regression::RegressionConfig};
 
 /// Settings a job may override; unset: the server's defaults.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -80,6 +80,8 @@ pub struct JobsConfig {
     pub min_images: usize,
     pub adapt: AdaptConfig,
     pub gate: GateConfig,
+    /// The bounds of the regression sets the gate guards.
+    pub regression: RegressionConfig,
     pub device: Device,
     pub decode: DecodeLimits,
     /// Whether this process runs jobs (`--role all|adapt`) or only records and watches them.

@@ -166,18 +166,44 @@ impl Jobs {
         };
         let before = gate::measure(source, &held_out, &self.config.gate, &mut check)?;
         let after = gate::measure(&candidate, &held_out, &self.config.gate, &mut check)?;
-        let decision = gate::decide(&before, &after, &self.config.gate)?;
+        drop(held_out);
+        let mut decision = gate::decide(&before, &after, &self.config.gate)?;
+        let mut criteria: Vec<_> = decision.criteria.iter().map(criterion).collect();
+        // Every set is measured even when the new domain already failed, so the events always
+        // show what the candidate would do to the domains seen before (bounded: see
+        // RegressionConfig).
+        let guarded = self.guard(spec, source, &candidate, &mut check)?;
+        for (set_id, d) in &guarded {
+            criteria.extend(
+                d.criteria
+                    .iter()
+                    .map(|c| udapose_api::GateCriterion { name: format!("{set_id}/{}", c.name), ..criterion(c) }),
+            );
+        }
+        let regressed: Vec<String> = guarded
+            .iter()
+            .filter(|(_, d)| !d.passed)
+            .map(|(set_id, d)| format!("it would regress on regression set {set_id}: {}", d.reason()))
+            .collect();
+        let passed_alone = decision.passed;
+        decision.passed &= regressed.is_empty();
+        let why = || {
+            let own = (!passed_alone).then(|| decision.reason());
+            own.into_iter().chain(regressed.iter().cloned()).collect::<Vec<_>>().join("; ")
+        };
         if !decision.passed && self.config.enforce_gate {
             self.append(id, JobState::Rejected, |e| {
-                e.message = format!("the gate kept {} inactive: {}", spec.version, decision.reason());
-                e.gate = decision.criteria.iter().map(criterion).collect();
+                e.message = format!("the gate kept {} inactive: {}", spec.version, why());
+                e.gate = criteria.clone();
             })?;
             return Ok(());
         }
+        // Whatever is activated, its domain is now one the service has seen.
+        self.record_set(spec)?;
         let reason = if decision.passed {
             format!("job {id}: passed the validation gate")
         } else {
-            format!("job {id}: activated by --gate advisory although the gate failed: {}", decision.reason())
+            format!("job {id}: activated by --gate advisory although the gate failed: {}", why())
         };
         let actor = format!("job:{id}");
         failpoint("before-activate");
@@ -188,7 +214,7 @@ impl Jobs {
                 self.registry.refresh();
                 self.append(id, JobState::Activated, |e| {
                     e.message = format!("activated {} as generation {generation}", spec.version);
-                    e.gate = decision.criteria.iter().map(criterion).collect();
+                    e.gate = criteria.clone();
                 })?;
             }
             Err(StoreError::Conflict { found, .. }) => {
@@ -198,7 +224,7 @@ impl Jobs {
                         "passed the gate, but generation {found} was activated since the job started from {}",
                         spec.source_generation
                     );
-                    e.gate = decision.criteria.iter().map(criterion).collect();
+                    e.gate = criteria.clone();
                 })?;
             }
             Err(e) => return Err(e.into()),
@@ -206,18 +232,75 @@ impl Jobs {
         Ok(())
     }
 
+    /// The regression rule on each of the category's regression sets (ARCHITECTURE.md
+    /// "Validation gate"), candidate against the version the job started from; per set, its id
+    /// and verdict. A set too small to decide on is skipped (logged).
+    fn guard(
+        &self,
+        spec: &JobSpec,
+        source: &Model,
+        candidate: &Model,
+        check: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    ) -> Result<Vec<(String, gate::Decision)>> {
+        if !self.regression.config.enabled {
+            return Ok(Vec::new());
+        }
+        let sets = self.regression.sets(&spec.category)?;
+        let mut out = Vec::with_capacity(sets.len());
+        for s in sets {
+            let id = &s.set.set_id;
+            if s.shas.len() < self.config.gate.min_images {
+                tracing::warn!(job = %spec.job_id, "regression set {id} has {} images, too few to guard", s.shas.len());
+                continue;
+            }
+            let bytes = s.shas.iter().map(|sha| self.regression.read(&spec.category, id, sha).map_err(Into::into));
+            let images = crops(bytes, &s.shas, source.manifest.crop, self.config.decode)?;
+            let before = gate::measure(source, &images, &self.config.gate, check)?;
+            let after = gate::measure(candidate, &images, &self.config.gate, check)?;
+            let decision = gate::guard(&before, &after, &self.config.gate)?;
+            tracing::info!(job = %spec.job_id, "regression set {id} ({} images): {}", s.shas.len(), decision.reason());
+            out.push((id.clone(), decision));
+        }
+        Ok(out)
+    }
+
+    /// The job's held-out images become a regression set (before activation: see
+    /// `regression.rs`), and the category's sets are thinned to their bound.
+    pub(super) fn record_set(&self, spec: &JobSpec) -> Result<()> {
+        if !self.regression.config.enabled {
+            return Ok(());
+        }
+        let shas = self.regression.sample(&spec.held_out);
+        let read = |sha: &str| self.buffer.read(&spec.category, sha);
+        self.regression.record(&spec.category, &spec.job_id, &spec.version, &shas, read)?;
+        self.regression.thin(&spec.category, &spec.job_id)?;
+        Ok(())
+    }
+
     /// Buffered images as the model's crops (N×3×H×W in [0, 1]).
     pub(super) fn images(&self, category: &str, shas: &[String], crop: [usize; 2]) -> Result<Tensor> {
-        let [h, w] = crop;
-        let mut pixels = Vec::with_capacity(shas.len() * 3 * h * w);
-        for sha in shas {
-            let bytes = self.buffer.read(category, sha).with_context(|| format!("reading buffered image {sha}"))?;
-            let decoded = decode::decode(&bytes, self.config.decode).map_err(|e| anyhow!("image {sha}: {e}"))?;
-            let image = Rgb8Image::new(&decoded.rgb8, decoded.width, decoded.height)?;
-            pixels.extend(input::crop(&image, None, crop)?.pixels);
-        }
-        Ok(Tensor::from_slice(&pixels).view([shas.len() as i64, 3, h as i64, w as i64]))
+        let bytes = shas
+            .iter()
+            .map(|sha| self.buffer.read(category, sha).with_context(|| format!("reading buffered image {sha}")));
+        crops(bytes, shas, crop, self.config.decode)
     }
+}
+
+/// Encoded images as crops at the model's size (N×3×H×W in [0, 1]); `shas` name them in errors.
+fn crops(
+    bytes: impl Iterator<Item = Result<Vec<u8>>>,
+    shas: &[String],
+    crop: [usize; 2],
+    limits: decode::DecodeLimits,
+) -> Result<Tensor> {
+    let [h, w] = crop;
+    let mut pixels = Vec::with_capacity(shas.len() * 3 * h * w);
+    for (bytes, sha) in bytes.zip(shas) {
+        let decoded = decode::decode(&bytes?, limits).map_err(|e| anyhow!("image {sha}: {e}"))?;
+        let image = Rgb8Image::new(&decoded.rgb8, decoded.width, decoded.height)?;
+        pixels.extend(input::crop(&image, None, crop)?.pixels);
+    }
+    Ok(Tensor::from_slice(&pixels).view([shas.len() as i64, 3, h as i64, w as i64]))
 }
 
 pub(super) fn is_cancelled(e: &anyhow::Error) -> bool {

@@ -31,6 +31,7 @@ fn recorder(store: &Store, registry: &Arc<Registry>) -> Arc<Jobs> {
         min_images: 1000,
         adapt: AdaptConfig::default(),
         gate: GateConfig::default(),
+        regression: Default::default(),
         device: Device::Cpu,
         decode: DecodeLimits::default(),
         runs_jobs: false,
@@ -67,7 +68,7 @@ fn a_job_claims_the_buffered_images_once_and_other_processes_see_it() {
     let (dir, store, registry) = setup("claim");
     let jobs = recorder(&store, &registry);
     for bytes in images(40) {
-        let ack = jobs.put_target("car", &bytes);
+        let ack = jobs.put_target("car", &bytes, false);
         assert_eq!(ack.status, AckStatus::Accepted, "{}", ack.reason);
     }
     let job = jobs.start_job("car", Overrides::default(), Some("client-1".into())).unwrap();
@@ -100,14 +101,14 @@ fn too_few_images_and_unknown_jobs_are_clear_errors() {
     let (dir, store, registry) = setup("few");
     let jobs = recorder(&store, &registry);
     for bytes in images(3) {
-        jobs.put_target("car", &bytes);
+        jobs.put_target("car", &bytes, false);
     }
     let few = jobs.start_job("car", Overrides::default(), None).unwrap_err();
     assert!(matches!(few, ApiError::FailedPrecondition(ref m) if m.contains("too few buffered car images")), "{few}");
     assert!(jobs.list(None).is_empty(), "nothing was created");
     let missing = jobs.get("job-0-nope").unwrap_err();
     assert!(matches!(missing, ApiError::NotFound(_)), "{missing}");
-    let bad = jobs.put_target("car", b"not an image");
+    let bad = jobs.put_target("car", b"not an image", false);
     assert_eq!(bad.status, AckStatus::Rejected);
     assert!(bad.reason.starts_with("INVALID_IMAGE"), "{}", bad.reason);
     std::fs::remove_dir_all(dir).unwrap();

@@ -1,0 +1,347 @@
+//! `udapose-bench continual`: online adaptation over a sequence of domains, through real
+//! servers. Each step streams a domain's adapt images to the server, starts a job and waits for
+//! its verdict; then Acc@π/6 is measured on the test split of *every* domain of the sequence.
+//! Background clients estimate during the whole sequence; any failed request is counted.
+//!
+//! Rows, each on a fresh server with the same seed model:
+//! - `none`: no adaptation (the seed's accuracy, measured once);
+//! - `independent`: `--no-regression-sets`, each job judged on its own held-out images only
+//!   (the service before regression sets);
+//! - `continual`: the default service, whose gate also guards every earlier job's held-out images.
+//!
+//! Per step the report keeps what a user sees (the job's state and reason) and, when the gate
+//! refused the job, what the refused candidate would have scored on the step's domain
+//! (activated for the measurement, then the previous version again), so that a step's gain is
+//! compared with what a job on that domain alone gains from the same starting model.
+
+use std::{
+    collections::BTreeMap,
+    f64::consts::FRAC_PI_6,
+    path::{Path, PathBuf},
+    sync::Arc,
+    time::{Duration, Instant},
+};
+
+use anyhow::{Context, Result, bail, ensure};
+use rayon::prelude::*;
+use serde_json::{Value, json};
+use udapose_engine::pose_error;
+use udapose_lab::{atomic::write_atomic, datasets::syncar::SyncarSplit};
+
+use crate::harness::{ServerProcess, estimate, git_commit, post_or_get, read_images, server_binary};
+use crate::service::clients::Clients;
+
+#[derive(clap::Args)]
+pub struct ContinualArgs {
+    /// The seed model directory (served as `car`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// SynCar-OOD root.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// The domains, in order (repeats allowed).
+    #[arg(long, default_value = "source,corrupt/fog,combined,corrupt/contrast,corrupt/fog,source")]
+    pub sequence: String,
+    /// Adapt images streamed per step (the first of the domain's adapt split).
+    #[arg(long, default_value_t = 200)]
+    pub images: usize,
+    /// Test images per domain for Acc@π/6 after each step.
+    #[arg(long, default_value_t = 300)]
+    pub test_images: usize,
+    /// Background estimate clients during the whole sequence.
+    #[arg(long, default_value_t = 2)]
+    pub clients: usize,
+    /// Most seconds a job may take.
+    #[arg(long, default_value_t = 3600)]
+    pub job_timeout_s: u64,
+    /// The server binary (default: next to this one).
+    #[arg(long)]
+    pub server: Option<PathBuf>,
+    #[arg(long, default_value = "reports/continual.json")]
+    pub out: PathBuf,
+}
+
+/// A domain's test images: bytes and true `[azimuth, elevation, theta]`.
+struct TestSet {
+    images: Vec<(Vec<u8>, [f64; 3])>,
+}
+
+impl TestSet {
+    fn load(data: &Path, domain: &str, n: usize) -> Result<Self> {
+        let split = SyncarSplit::open(data, domain, "test")?;
+        let images = (0..split.len().min(n))
+            .map(|i| {
+                let s = split.load(i)?;
+                let p = s.annotation.pose;
+                let bytes = std::fs::read(&s.entry.image_path)
+                    .with_context(|| format!("reading {}", s.entry.image_path.display()))?;
+                Ok((bytes, [p.azimuth, p.elevation, p.theta]))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        ensure!(!images.is_empty(), "{domain}/test has no images");
+        Ok(TestSet { images })
+    }
+
+    /// Acc@π/6 of the server's active version; errors when any estimate fails.
+    fn accuracy(&self, server: &ServerProcess) -> Result<f64> {
+        let right: Vec<bool> = self
+            .images
+            .par_iter()
+            .map(|(bytes, truth)| {
+                let (status, body) = post_or_get(server.http, "POST", "/v1/pose/car", bytes)?;
+                ensure!(status == 200, "estimate: {status} {body}");
+                let v: Value = serde_json::from_str(&body)?;
+                let p = &v["estimates"][0];
+                let angles = ["azimuth", "elevation", "theta"].map(|k| p[k].as_f64().unwrap_or(f64::NAN));
+                Ok(pose_error(Some(angles), *truth) < FRAC_PI_6)
+            })
+            .collect::<Result<_>>()?;
+        Ok(right.iter().filter(|&&r| r).count() as f64 / right.len() as f64)
+    }
+}
+
+pub fn run(args: &ContinualArgs) -> Result<()> {
+    let started = Instant::now();
+    let sequence: Vec<String> =
+        args.sequence.split(',').map(str::trim).filter(|d| !d.is_empty()).map(Into::into).collect();
+    ensure!(!sequence.is_empty(), "--sequence names no domain");
+    let mut domains = sequence.clone();
+    domains.sort();
+    domains.dedup();
+    let tests: BTreeMap<String, TestSet> = domains
+        .iter()
+        .map(|d| Ok((d.clone(), TestSet::load(&args.data, d, args.test_images)?)))
+        .collect::<Result<_>>()?;
+    let binary = server_binary(args.server.as_deref())?;
+    let mut failed = 0;
+    let mut rows = serde_json::Map::new();
+    for (row, flags) in
+        [("none", None), ("independent", Some(&["--no-regression-sets"][..])), ("continual", Some(&[][..]))]
+    {
+        eprintln!("row {row}");
+        let (steps, failures) = run_row(args, &binary, &sequence, &tests, flags)?;
+        failed += failures;
+        rows.insert(row.into(), Value::Array(steps));
+    }
+    let continual = rows["continual"].as_array().cloned().unwrap_or_default();
+    let report = json!({
+        "commit": git_commit(),
+        "model": args.model,
+        "data": args.data,
+        "sequence": sequence,
+        "images_per_step": args.images,
+        "test_images": args.test_images,
+        "rows": rows,
+        "forgetting_max": forgetting_max(&continual),
+        "forgetting_max_independent": forgetting_max(rows["independent"].as_array().map_or(&[][..], Vec::as_slice)),
+        "gain_ratio_min": gain_ratio_min(&continual),
+        "failed_requests": failed,
+        "seconds": started.elapsed().as_secs_f64(),
+    });
+    write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
+    write_atomic(&args.out.with_extension("md"), markdown(&report, args).as_bytes())?;
+    eprintln!("wrote {} and its .md", args.out.display());
+    Ok(())
+}
+
+/// One row: a fresh server, the sequence's jobs (none when `flags` is `None`), the accuracy
+/// on every domain after each step; the steps and the failed background requests.
+fn run_row(
+    args: &ContinualArgs,
+    binary: &Path,
+    sequence: &[String],
+    tests: &BTreeMap<String, TestSet>,
+    flags: Option<&[&str]>,
+) -> Result<(Vec<Value>, usize)> {
+    let mut all_flags = vec!["--adapt-min-images", "1000000"];
+    all_flags.extend(flags.unwrap_or_default());
+    let (server, _) = ServerProcess::serve_model(binary, &args.model, "continual", &all_flags, true)?;
+    let probe: Arc<Vec<Vec<u8>>> =
+        Arc::new(tests.values().flat_map(|t| t.images.iter().take(4)).map(|(b, _)| b.clone()).collect());
+    let clients = Clients::start(server.http, &probe, args.clients);
+    let measure_all = |server: &ServerProcess| -> Result<BTreeMap<String, f64>> {
+        tests.iter().map(|(d, t)| Ok((d.clone(), t.accuracy(server)?))).collect()
+    };
+    let mut acc = measure_all(&server)?;
+    let mut steps = Vec::new();
+    for (step, domain) in sequence.iter().enumerate() {
+        let before = acc.clone();
+        let mut entry = json!({ "step": step + 1, "domain": domain, "acc_before": before });
+        if flags.is_none() {
+            entry["gate"] = json!("none");
+            entry["activated"] = json!(false);
+        } else {
+            let (job, seconds) = run_job(args, &server, domain)?;
+            let state = job["state"].as_str().unwrap_or("").to_owned();
+            eprintln!(
+                "  step {} {domain}: {state} in {seconds:.0} s: {}",
+                step + 1,
+                job["reason"].as_str().unwrap_or("")
+            );
+            acc = measure_all(&server)?;
+            entry["job_id"] = job["job_id"].clone();
+            entry["gate"] = json!(state);
+            entry["reason"] = job["reason"].clone();
+            entry["activated"] = json!(state == "ACTIVATED");
+            entry["job_seconds"] = json!(seconds);
+            let guarded: Vec<&Value> = job["last_event"]["gate"]
+                .as_array()
+                .map(|g| g.iter().filter(|c| c["name"].as_str().is_some_and(|n| n.contains('/'))).collect())
+                .unwrap_or_default();
+            entry["guarded_criteria"] = json!(guarded);
+            // What the job alone would have given on its domain: the candidate itself.
+            let candidate = job["version"].as_str().unwrap_or("");
+            entry["alone_acc"] = if state == "ACTIVATED" {
+                json!(acc[domain])
+            } else if !candidate.is_empty() {
+                json!(candidate_accuracy(&server, candidate, &tests[domain])?)
+            } else {
+                Value::Null
+            };
+        }
+        entry["acc_pi_6"] = json!(acc);
+        steps.push(entry);
+    }
+    let failures = clients.stop().iter().filter(|r| r.answer.is_err()).count();
+    Ok((steps, failures))
+}
+
+/// Uploads the domain's first `--images` adapt images, starts a job and waits for its end.
+fn run_job(args: &ContinualArgs, server: &ServerProcess, domain: &str) -> Result<(Value, f64)> {
+    let folder = args.data.join(domain).join("adapt/images/car");
+    for image in read_images(&folder, args.images)? {
+        let (status, body) = post_or_get(server.http, "POST", "/v1/adapt/car/images", &image)?;
+        ensure!(status == 200, "uploading a target image: {status} {body}");
+    }
+    let started = Instant::now();
+    let job = server.post_json("/v1/adapt/car/jobs", &json!({}))?;
+    let id = job["job_id"].as_str().context("no job_id")?.to_owned();
+    let deadline = started + Duration::from_secs(args.job_timeout_s);
+    loop {
+        let job = server.get_json(&format!("/v1/jobs/{id}"))?;
+        if !matches!(job["state"].as_str(), Some("QUEUED" | "RUNNING" | "VALIDATING")) {
+            return Ok((job, started.elapsed().as_secs_f64()));
+        }
+        if Instant::now() > deadline {
+            bail!("job {id} did not end within {} s: {job}", args.job_timeout_s);
+        }
+        std::thread::sleep(Duration::from_millis(500));
+    }
+}
+
+/// Acc@π/6 of a version the gate refused: activated for the measurement, then the version that
+/// was active before it is activated again.
+fn candidate_accuracy(server: &ServerProcess, version: &str, test: &TestSet) -> Result<f64> {
+    let active = server.get_json("/v1/models/car")?["version"].as_str().context("no active version")?.to_owned();
+    let probe = &test.images[0].0;
+    activate(server, version, probe)?;
+    let acc = test.accuracy(server);
+    activate(server, &active, probe)?;
+    acc
+}
+
+/// Activates `version` and waits until estimates of `probe` name it (workers swap between
+/// batches).
+fn activate(server: &ServerProcess, version: &str, probe: &[u8]) -> Result<()> {
+    server.post_json("/v1/models/car/activate", &json!({ "version": version, "reason": "bench continual" }))?;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while estimate(server.http, probe).map_err(anyhow::Error::msg)? != version {
+        ensure!(Instant::now() < deadline, "{version} never answered");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    Ok(())
+}
+
+/// The largest drop, after any step, of a domain already adapted to below its best accuracy
+/// since it was first a step's domain (0 with no drop).
+fn forgetting_max(steps: &[Value]) -> f64 {
+    let mut best: BTreeMap<String, f64> = BTreeMap::new();
+    let mut worst: f64 = 0.0;
+    for s in steps {
+        let Some(domain) = s["domain"].as_str() else { continue };
+        let acc = |d: &str| s["acc_pi_6"][d].as_f64().unwrap_or(f64::NAN);
+        best.entry(domain.into()).or_insert(f64::NEG_INFINITY);
+        for (d, b) in best.iter_mut() {
+            *b = b.max(acc(d));
+            worst = worst.max(*b - acc(d));
+        }
+    }
+    worst
+}
+
+/// Over the steps whose job alone would have gained (its candidate above the starting
+/// accuracy on the step's domain), the smallest ratio of the step's actual gain to that gain;
+/// null when no step's job would have gained.
+fn gain_ratio_min(steps: &[Value]) -> Value {
+    let ratios: Vec<f64> = steps
+        .iter()
+        .filter_map(|s| {
+            let d = s["domain"].as_str()?;
+            let before = s["acc_before"][d].as_f64()?;
+            let alone = s["alone_acc"].as_f64()? - before;
+            let actual = s["acc_pi_6"][d].as_f64()? - before;
+            (alone > 0.0).then_some(actual / alone)
+        })
+        .collect();
+    ratios.into_iter().reduce(f64::min).map_or(Value::Null, |r| json!(r))
+}
+
+fn markdown(report: &Value, args: &ContinualArgs) -> String {
+    let domains: Vec<String> = {
+        let mut d: Vec<String> =
+            report["sequence"].as_array().into_iter().flatten().filter_map(|v| v.as_str().map(Into::into)).collect();
+        d.sort();
+        d.dedup();
+        d
+    };
+    let mut md = format!(
+        "# Continual online adaptation\n\n`udapose-bench continual --model {} --data {} --sequence {} --images {} \
+         --test-images {}` (commit {}, {:.0} s).\n\nAcc@π/6 on each domain's test split after each step.\n\n",
+        args.model.display(),
+        args.data.display(),
+        args.sequence,
+        args.images,
+        args.test_images,
+        report["commit"].as_str().unwrap_or("?"),
+        report["seconds"].as_f64().unwrap_or(0.0)
+    );
+    for row in ["none", "independent", "continual"] {
+        md += &format!("## {row}\n\n| step | domain | gate | job s | alone |");
+        for d in &domains {
+            md += &format!(" {d} |");
+        }
+        md += "\n|---:|---|---|---:|---:|";
+        md += &"---:|".repeat(domains.len());
+        md += "\n";
+        for s in report["rows"][row].as_array().into_iter().flatten() {
+            let num = |v: &Value| v.as_f64().map_or("-".into(), |x| format!("{x:.3}"));
+            md += &format!(
+                "| {} | {} | {} | {} | {} |",
+                s["step"],
+                s["domain"].as_str().unwrap_or(""),
+                s["gate"].as_str().unwrap_or(""),
+                s["job_seconds"].as_f64().map_or("-".into(), |x| format!("{x:.0}")),
+                num(&s["alone_acc"])
+            );
+            for d in &domains {
+                md += &format!(" {} |", num(&s["acc_pi_6"][d]));
+            }
+            md += "\n";
+        }
+        md += "\n";
+        for s in report["rows"][row].as_array().into_iter().flatten() {
+            if let Some(reason) = s["reason"].as_str().filter(|r| !r.is_empty() && s["gate"] != "ACTIVATED") {
+                md += &format!("- step {} ({}): {reason}\n", s["step"], s["domain"].as_str().unwrap_or(""));
+            }
+        }
+        md += "\n";
+    }
+    md += &format!(
+        "forgetting_max (continual) {:.3}, (independent) {:.3}; gain_ratio_min {}; failed requests {}.\n",
+        report["forgetting_max"].as_f64().unwrap_or(f64::NAN),
+        report["forgetting_max_independent"].as_f64().unwrap_or(f64::NAN),
+        report["gain_ratio_min"],
+        report["failed_requests"]
+    );
+    md
+}
