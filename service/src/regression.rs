@@ -180,7 +180,9 @@ impl Regression {
     /// recorded) is never thinned.
     pub fn thin(&self, category: &str, keep: &str) -> Result<(), StoreError> {
         let sets: Vec<SetImages> = self.sets(category)?.into_iter().filter(|s| s.set.kind == SetKind::Job).collect();
-        let mut total: usize = sets.iter().map(|s| s.shas.len()).sum();
+        // `keep` is thinned for before its job is activated, when sets() does not list it yet.
+        let unlisted = if sets.iter().any(|s| s.set.set_id == keep) { 0 } else { self.recorded(category, keep)? };
+        let mut total: usize = sets.iter().map(|s| s.shas.len()).sum::<usize>() + unlisted;
         let remove = |set: &SetImages, shas: &[String]| -> Result<(), StoreError> {
             for sha in shas {
                 self.store.delete(&image_key(category, &set.set.set_id, sha))?;
@@ -205,6 +207,12 @@ impl Regression {
             total -= left;
         }
         Ok(())
+    }
+
+    /// The images of a recorded job set, activated or not (0 when there is none).
+    fn recorded(&self, category: &str, set_id: &str) -> Result<usize, StoreError> {
+        let key = format!("{}/set.json", prefix(category, set_id));
+        Ok(self.store.read_json::<SetRecord>(&key)?.map_or(0, |r| r.images.len()))
     }
 
     /// Keeps an anchor image (already decoded and checked by the caller) unless the anchor set
@@ -303,6 +311,12 @@ mod tests {
         record(&r, "job-e", 400..410);
         // ... and then the oldest goes.
         assert_eq!(sizes(&r), [("job-b".into(), 4), ("job-c".into(), 4), ("job-d".into(), 4), ("job-e".into(), 10)]);
+
+        // A set is thinned for before its activation (the service's order): it counts already.
+        record(&r, "job-g", 600..610);
+        activated(&store, 8, "job-g");
+        let total: usize = sizes(&r).iter().map(|(_, n)| n).sum();
+        assert!(total <= 24, "{:?}", sizes(&r));
 
         // Anchor images: their own set, first, bounded, duplicates harmless.
         assert_eq!(r.put_anchor("car", b"anchor 1").unwrap(), (AckStatus::Accepted, 1));
