@@ -78,6 +78,12 @@ struct Args {
     /// `udapose-bench continual`'s "independent" row).
     #[arg(long)]
     no_regression_sets: bool,
+    /// The target check: the share of visible vertices that must fire to the active model on a
+    /// job's images at its first round, else the job is REJECTED as "not this category" before
+    /// any training (0 turns it off). Lower it for a domain far from the source (measured
+    /// shares: data/report-standard.log; see GateConfig::min_target_fired).
+    #[arg(long, value_name = "SHARE", default_value_t = GateConfig::default().min_target_fired)]
+    min_target_fired: f64,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
@@ -279,7 +285,7 @@ fn jobs_config(
     JobsConfig {
         min_images: args.adapt_min_images as usize,
         adapt: AdaptConfig::default(),
-        gate: GateConfig::default(),
+        gate: GateConfig { min_target_fired: args.min_target_fired, ..Default::default() },
         regression: RegressionConfig { enabled: !args.no_regression_sets, ..Default::default() },
         device: runtime.device(),
         decode: limits.decode,

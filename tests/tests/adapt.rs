@@ -28,8 +28,17 @@ fn adapt_images(domain: &str) -> PathBuf {
 }
 
 fn server(name: &str) -> Server {
+    server_with(name, &[])
+}
+
+fn server_with(name: &str, args: &[&str]) -> Server {
     // No job starts by itself: each test starts its own.
-    Server::config(name).quick_model().arg("--adapt-min-images").arg("100000").arg("--max-batch").arg("1").start()
+    let mut config =
+        Server::config(name).quick_model().arg("--adapt-min-images").arg("100000").arg("--max-batch").arg("1");
+    for a in args {
+        config = config.arg(*a);
+    }
+    config.start()
 }
 
 fn udapose(server: &Server, args: &[&str]) -> (bool, String, String) {
@@ -557,7 +566,10 @@ fn job_on(server: &Server, domain: &str) -> Value {
 
 #[test]
 fn a_job_that_would_erase_an_earlier_gain_is_rejected() {
-    let server = server("adapt-continual");
+    // Fog is this test's far domain: to the quick model (6 epochs, retrained every CI run) fewer
+    // of its vertices fire than the target check's 2 % (1.2 % on one CI run: REJECTED as "not
+    // a car" before any training), so the check is off here; the no-car test covers it.
+    let server = server_with("adapt-continual", &["--min-target-fired", "0"]);
     let seed = active_version(&server);
     let fog_test = quick_images("corrupt/fog", 60);
 

@@ -100,6 +100,8 @@ impl Jobs {
     /// starts the runner thread (one job at a time: a job uses every core it gets) and the
     /// store poller.
     pub fn start(store: Store, registry: Arc<Registry>, buffer: Buffer, config: JobsConfig) -> Result<Arc<Self>> {
+        config.gate.validate().context("the validation gate's settings")?;
+        config.adapt.validate().context("the adaptation's settings")?;
         let (events, _) = tokio::sync::broadcast::channel(1024);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.threads.max(1))
