@@ -20,6 +20,10 @@ pub struct PoseAnswer {
     pub score: f64,
     /// The refined hypotheses, best first (the first is the pose above).
     pub hypotheses: Vec<HypothesisAnswer>,
+    /// How ambiguous the answer is: its score lead over the best hypothesis that ends more than
+    /// 30° from it (a front/back flip, say); absent when every hypothesis agrees. A lead near 0
+    /// means the image supports both poses almost equally.
+    pub runner_up_gap: Option<f64>,
     pub crop_box: BoxAnswer,
     /// 8 corners × (x, y) in image pixels.
     pub cuboid: Vec<f64>,
@@ -118,6 +122,7 @@ impl From<PoseAnswer> for pb::PoseEstimate {
             rotation: p.rotation,
             score: p.score,
             hypotheses: p.hypotheses.into_iter().map(Into::into).collect(),
+            runner_up_gap: p.runner_up_gap,
             crop_box: Some(p.crop_box.into()),
             cuboid: p.cuboid,
             model_version: p.model_version,
@@ -138,6 +143,7 @@ impl From<pb::PoseEstimate> for PoseAnswer {
             rotation: p.rotation,
             score: p.score,
             hypotheses: p.hypotheses.into_iter().map(Into::into).collect(),
+            runner_up_gap: p.runner_up_gap,
             crop_box: p.crop_box.map(Into::into).unwrap_or_default(),
             cuboid: p.cuboid,
             model_version: p.model_version,

@@ -16,6 +16,7 @@ fn pose() -> PoseAnswer {
         rotation: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         score: 0.8,
         hypotheses: vec![HypothesisAnswer { azimuth: 1.0, elevation: 0.2, theta: -0.1, distance: 5.0, score: 0.8 }],
+        runner_up_gap: Some(0.01),
         crop_box: BoxAnswer { x0: 1.0, y0: 2.0, x1: 30.0, y1: 40.0 },
         cuboid: vec![0.5; 16],
         model_version: "seed-1".into(),

@@ -160,6 +160,10 @@ impl PoseEstimate {
     }
 }
 
+/// The most crops of a CPU backbone pass whose features match any other pass's of 2 or more
+/// ([`Estimator::features`]).
+pub const MAX_INVARIANT_PASS: usize = 15;
+
 /// Image in, pose out: a model (backbone + neural mesh) and its [`PoseSolver`].
 pub struct Estimator {
     pub model: Model,
@@ -181,13 +185,30 @@ impl Estimator {
         features(&self.model.backbone, &images.to_device(self.model.vs.device()))
     }
 
-    /// Features of each crop, one backbone pass per crop: libtorch's CPU convolutions are not
-    /// batch-invariant (~1e-6), and the solver turns that into answers up to a radian apart
-    /// when two hypotheses nearly tie; per crop, an answer never depends on its neighbours.
-    pub fn features(&self, crops: &[&Crop]) -> Result<Vec<Features>> {
+    /// Features of each crop, in backbone passes of at most `max_batch` crops. With `max_batch`
+    /// 1 every pass holds one crop; otherwise every pass holds between 2 and
+    /// [`MAX_INVARIANT_PASS`] crops on the CPU (a lone crop is padded with a blank one), so a
+    /// crop's features, and its answer, never depend on what else was in the queue.
+    ///
+    /// Why those bounds (measured by `bench/examples/batch_invariance.rs`, libtorch 2.13 on the
+    /// CPU): within them a crop's features are bit-identical whatever else shares the pass, its
+    /// place in it and the pass's size; outside them libtorch switches kernels. ATen's
+    /// `ConvParams::use_mkldnn` sends the small convolutions of a batch of *one* to its native
+    /// kernels rather than oneDNN's (features then differ by up to 6e-7 relative, enough to move
+    /// an answer by 10° where the loss is flat), and with one torch thread it sends 1×1
+    /// convolutions to oneDNN only from 16 images on.
+    pub fn features(&self, crops: &[&Crop], max_batch: usize) -> Result<Vec<Features>> {
+        let cpu = self.model.vs.device() == tch::Device::Cpu;
+        let pass = if cpu { max_batch.clamp(1, MAX_INVARIANT_PASS) } else { max_batch.max(1) };
         let mut out = Vec::with_capacity(crops.len());
-        for crop in crops {
-            out.extend(self.batch_features(&crop.tensor())?);
+        for chunk in crops.chunks(pass) {
+            let mut rows: Vec<Tensor> = chunk.iter().map(|c| c.tensor()).collect();
+            if rows.len() == 1 && pass > 1 {
+                rows.push(rows[0].zeros_like());
+            }
+            let mut features = self.batch_features(&Tensor::cat(&rows, 0))?;
+            features.truncate(chunk.len());
+            out.extend(features);
         }
         Ok(out)
     }
@@ -199,7 +220,7 @@ impl Estimator {
 
     /// Image in, pose out, for one crop.
     pub fn estimate(&self, crop: &Crop) -> Result<PoseEstimate> {
-        let features = self.features(&[crop])?;
+        let features = self.features(&[crop], 1)?;
         self.estimate_features(crop, &features[0])
     }
 

@@ -98,7 +98,11 @@ struct Args {
     /// Inference worker threads per category (each holds its own model copy).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     workers: u32,
-    /// Most crops per backbone batch; 1 turns batching off (bit-identical answers).
+    /// Most crops per backbone pass: the crops of concurrent requests (and a request's boxes)
+    /// share passes. Either way an image's answer does not depend on the load: with more than
+    /// 1, a lone crop is padded to a pass of 2 and CPU passes hold at most 15, the range where
+    /// libtorch's kernels give every crop the same features; 1 runs every crop alone (features
+    /// a few ulps off the batched ones, which can move an answer where the loss is flat).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=256))]
     max_batch: u32,
     /// How long the first request of a batch waits for others, in milliseconds.

@@ -46,7 +46,11 @@ impl Metrics {
             IntGaugeVec::new(Opts::new("queue_depth", "Jobs waiting for an inference worker"), &["category"])
                 .expect("valid metric");
         let batch_size = HistogramVec::new(
-            HistogramOpts::new("batch_size", "Crops per backbone batch").buckets(vec![1.0, 2.0, 4.0, 8.0, 16.0, 32.0]),
+            HistogramOpts::new(
+                "batch_size",
+                "Crops per worker batch (its backbone passes take at most --max-batch each)",
+            )
+            .buckets(vec![1.0, 2.0, 4.0, 8.0, 16.0, 32.0]),
             &["category"],
         )
         .expect("valid metric");

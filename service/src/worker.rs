@@ -1,7 +1,8 @@
 //! Inference workers: threads that own their tch model copies, take requests from their category's
 //! bounded queue, batch them (up to `max_batch` crops, waiting at most `max_delay` after the
-//! first), then run the backbone and the solver per crop ([`Estimator`]): a batch amortises the
-//! queue and the model switch, not the backbone (see `infer`).
+//! first), then run the backbone over them in shared passes and the solver per crop
+//! ([`Estimator`]). A crop's answer never depends on what it was batched with
+//! ([`Estimator::features`]).
 
 use std::{
     panic::AssertUnwindSafe,
@@ -31,7 +32,7 @@ use crate::{
 pub struct WorkerConfig {
     /// Worker threads per category, each with its own model copy.
     pub workers: usize,
-    /// Most crops in one backbone batch (1: no batching, bit-identical answers).
+    /// Most crops in one backbone pass (1: every crop alone).
     pub max_batch: usize,
     /// How long the first request of a batch waits for company.
     pub max_delay: Duration,
@@ -130,7 +131,7 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
         depth.set(rx.len() as i64);
         let crops: usize = batch.iter().map(Request::crops).sum();
         batch_sizes.observe(crops as f64);
-        process(&loaded, batch);
+        process(&loaded, batch, config);
     }
 }
 
@@ -181,7 +182,7 @@ struct Pending {
     crop_ms: f64,
 }
 
-fn process(loaded: &Loaded, batch: Vec<Request>) {
+fn process(loaded: &Loaded, batch: Vec<Request>, config: &WorkerConfig) {
     let mut pending = Vec::with_capacity(batch.len());
     for request in batch {
         let started = Instant::now();
@@ -206,7 +207,7 @@ fn process(loaded: &Loaded, batch: Vec<Request>) {
         return;
     }
     let crops: Vec<&Crop> = pending.iter().flat_map(|p| &p.crops).collect();
-    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops)));
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops, config)));
     let (mut results, backbone_ms) = match outcome {
         Ok(Ok(r)) => r,
         Ok(Err(e)) => (crops.iter().map(|_| Err(e.clone())).collect(), 0.0),
@@ -249,15 +250,11 @@ fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
-/// The backbone over each crop, then the solver per crop. Returns each crop's answer and
-/// solver time, and the backbone's time.
-///
-/// One forward pass per crop ([`Estimator::features`]), so an answer is bit-identical whatever
-/// else was batched with it (ARCHITECTURE.md asks for 1e-4 rad); batching still amortises the
-/// queue and the model switch.
-fn infer(loaded: &Loaded, crops: &[&Crop]) -> Result<(Vec<CropResult>, f64), ApiError> {
+/// The backbone over the crops, in passes of at most `max_batch`, then the solver per crop.
+/// Returns each crop's answer and solver time, and the backbone's time.
+fn infer(loaded: &Loaded, crops: &[&Crop], config: &WorkerConfig) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
-    let features = loaded.estimator.features(crops)?;
+    let features = loaded.estimator.features(crops, config.max_batch)?;
     let backbone_ms = ms(started.elapsed());
     let results = crops
         .iter()
@@ -297,6 +294,7 @@ fn answer(loaded: &Loaded, e: PoseEstimate) -> PoseAnswer {
                 score: 1.0 - h.loss,
             })
             .collect(),
+        runner_up_gap: e.estimate.runner_up_gap(std::f64::consts::FRAC_PI_6),
         crop_box: BoxAnswer { x0: b.x0, y0: b.y0, x1: b.x1, y1: b.y1 },
         cuboid: e.cuboid.iter().flatten().copied().collect(),
         model_version: loaded.active.version.clone(),

@@ -407,6 +407,17 @@ pub struct Estimate {
     pub hypotheses: Vec<Hypothesis>,
 }
 
+impl Estimate {
+    /// How far the answer's loss leads that of the best hypothesis ending more than
+    /// `separation` (radians) from it; `None` when every hypothesis ends within it. A small gap
+    /// is an ambiguous image (both poses explain it almost equally well).
+    pub fn runner_up_gap(&self, separation: f64) -> Option<f64> {
+        let (best, rest) = self.hypotheses.split_first()?;
+        let r = best.pose.rotation();
+        rest.iter().find(|h| rotation_error(&h.pose.rotation(), &r) > separation).map(|h| h.loss - best.loss)
+    }
+}
+
 /// The grid poses, each at the distance where the mesh fills `config.fill` of the crop.
 pub fn grid_poses(mesh: &Mesh, crop: &Camera, config: &SolverConfig) -> Result<Vec<Pose>> {
     config.validate()?;
