@@ -149,6 +149,11 @@ struct Args {
     /// solves keep the global pool, so they never queue behind a job's batch of solves.
     #[arg(long, default_value_t = 0)]
     job_threads: usize,
+    /// How much lower the adaptation job's threads' OS priority is than serving's (a nice
+    /// increment; 0: the same). Requests get the cores first while a job runs; an idle server
+    /// still adapts at full speed.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(i32).range(0..=19))]
+    job_nice: i32,
     /// Listen on non-loopback addresses without a token (otherwise refused).
     #[arg(long)]
     allow_unauthenticated: bool,
@@ -297,6 +302,7 @@ fn jobs_config(
         enforce_gate: args.gate == GatePolicy::Enforce,
         poll,
         threads: if args.job_threads == 0 { (runtime.cpus / 2).max(1) } else { args.job_threads },
+        nice: args.job_nice,
     }
 }
 

@@ -21,8 +21,15 @@ use crate::harness::{Level, Record, ServerProcess, estimate, load_average, post_
 /// the server starts can be much slower than the rest.
 pub(super) const WARM_UP: Duration = Duration::from_secs(3);
 
-/// The adaptation server's flags: no job starts by itself (only the benchmark starts one).
-const FLAGS: [&str; 2] = ["--adapt-min-images", "1000000"];
+/// The adaptation server's flags: no job starts by itself (only the benchmark starts one), and
+/// `--job-nice` when the benchmark is given one.
+fn flags(args: &ServiceArgs) -> Vec<String> {
+    let mut flags = vec!["--adapt-min-images".to_owned(), "1000000".to_owned()];
+    if let Some(nice) = args.job_nice {
+        flags.extend(["--job-nice".to_owned(), nice.to_string()]);
+    }
+    flags
+}
 
 /// The load average at each step of the measurement.
 type Loads = Vec<(&'static str, String)>;
@@ -43,8 +50,10 @@ pub(super) fn adapt_and_swap(
     };
     let targets = read_images(&folder, args.adapt_count)?;
     let n = args.adapt_clients;
-    eprintln!("adaptation (--max-batch {} {}), {n} clients", args.max_batch, FLAGS.join(" "));
-    let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &FLAGS)?;
+    let flags = flags(args);
+    eprintln!("adaptation (--max-batch {} {}), {n} clients", args.max_batch, flags.join(" "));
+    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).collect();
+    let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &flag_refs)?;
     let images = Arc::new(images.to_vec());
     for image in images.iter().cycle().take(4) {
         estimate(server.http, image).map_err(|e| anyhow!("warm-up request failed: {e}"))?;
@@ -250,7 +259,7 @@ fn adaptation_json(
     eprintln!("  during adaptation: {}; other processes {:.2} cores", summary(&during), during_cpu.unwrap_or(f64::NAN));
     eprintln!("  idle, before and after: {}", summary(&idle));
     json!({
-        "server": { "max_batch": args.max_batch, "max_delay_ms": args.max_delay_ms, "flags": FLAGS.join(" ") },
+        "server": { "max_batch": args.max_batch, "max_delay_ms": args.max_delay_ms, "flags": flags(args).join(" ") },
         "clients": n,
         "idle_seconds": args.adapt_idle_seconds,
         "targets": {

@@ -93,6 +93,9 @@ pub struct ServiceArgs {
     /// Longest wait for the job to end, in seconds.
     #[arg(long, default_value_t = 480)]
     adapt_timeout_s: u64,
+    /// The adaptation server's `--job-nice` (default: the server's own default).
+    #[arg(long)]
+    job_nice: Option<i32>,
     /// Rollback/activate round trips measured with clients, and again with none.
     #[arg(long, default_value_t = 3)]
     swap_rounds: usize,
@@ -156,6 +159,10 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
         "best_service_per_s": best,
         "ratio_to_backbone_ceiling": ceiling.as_ref().map(|c| best / c.batch1.max(c.batched)),
         "ratio_to_engine_sequential": ceiling.as_ref().map(|c| best / c.engine),
+        "throughput_ratio": throughput_ratio(&modes, args.max_batch, ceiling.as_ref()),
+        "p99_job_over_idle": adaptation["p99_ratio"],
+        "job_seconds": adaptation["job"]["seconds"],
+        "failed_requests": failed_requests(&modes, &adaptation),
         "adaptation": adaptation,
         "swap": swap,
     });
@@ -166,6 +173,20 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
     write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     eprintln!("wrote {} and its .md", args.out.display());
     Ok(())
+}
+
+/// The yardstick: the most clients' throughput with batching on, over the backbone alone
+/// in passes of `max_batch` (the most any serving could do without a solver).
+fn throughput_ratio(modes: &[Mode], max_batch: usize, ceiling: Option<&ceiling::Ceiling>) -> Option<f64> {
+    let (_, _, levels) = modes.iter().find(|(_, b, _)| *b == max_batch && max_batch > 1)?;
+    let busiest = levels.iter().max_by_key(|l| l.concurrency)?;
+    Some(busiest.throughput() / ceiling?.batched)
+}
+
+/// Requests that failed at any concurrency level and while the job ran.
+fn failed_requests(modes: &[Mode], adaptation: &Value) -> u64 {
+    let levels: usize = modes.iter().flat_map(|(_, _, l)| l).map(|l| l.errors).sum();
+    levels as u64 + adaptation["errors_during_job"].as_u64().unwrap_or(0)
 }
 
 /// The concurrency levels with batching on (`--max-batch`), then off (1), a server each.

@@ -59,26 +59,22 @@ pub(super) fn markdown(
         md.push_str("\nThe ceiling was skipped (`--skip-ceiling`).\n");
         return md;
     };
-    let ceiling = c.batch1.max(c.batched);
     let (backbone_ms, engine_ms) = (1e3 / c.batch1, 1e3 / c.engine);
     md.push_str(&format!(
         "\n**Ceiling**, measured in the same run with the server stopped: the backbone alone runs {:.2} crops/s at \
-         batch 1 and {:.2} crops/s at batch {}; the engine alone (backbone + solver, one image after the other, no \
-         I/O) {:.2} images/s, i.e. {engine_ms:.1} ms per image of which the backbone is {backbone_ms:.1} ms and the \
-         render-and-compare solver the other {:.1} ms. The best service throughput, {best:.2} req/s, is **{:.0}%** \
-         of the backbone-only ceiling (the solver runs after the backbone on the worker thread, so the backbone \
-         alone is out of reach) and {:.0}% of the engine's sequential rate. Batched, the backbone saves {:.1} ms per crop, which explains only part of \
-         that gain; the rest is not established (a likely cause: libtorch's OpenMP threads spin after each forward \
-         pass and slow the solver's threads that follow, once per batch in the worker but once per image in the \
-         sequential loop).\n",
+         batch 1 and {:.2} crops/s in passes of {}; the engine alone (backbone + solver, one image after the other, \
+         no I/O) {:.2} images/s, i.e. {engine_ms:.1} ms per image of which the backbone is {backbone_ms:.1} ms and the \
+         render-and-compare solver the other {:.1} ms. The best service throughput, {best:.2} req/s, is {:.0}% of \
+         the engine's sequential rate. **Throughput ratio** (the most clients with batching on, over the backbone \
+         alone in passes of {}): **{:.2}** (the solver runs on the same cores, so it is the gap to 1).\n",
         c.batch1,
         c.batched,
         args.max_batch,
         c.engine,
         engine_ms - backbone_ms,
-        100.0 * best / ceiling,
         100.0 * best / c.engine,
-        backbone_ms - 1e3 / c.batched,
+        args.max_batch,
+        report["throughput_ratio"].as_f64().unwrap_or(f64::NAN),
     ));
     md
 }

@@ -27,6 +27,7 @@
 
 mod log;
 mod model;
+pub mod priority;
 mod run;
 mod scheduler;
 #[cfg(test)]
@@ -103,9 +104,13 @@ impl Jobs {
         config.gate.validate().context("the validation gate's settings")?;
         config.adapt.validate().context("the adaptation's settings")?;
         let (events, _) = tokio::sync::broadcast::channel(1024);
+        let nice = config.nice;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.threads.max(1))
             .thread_name(|i| format!("adapt-solve-{i}"))
+            .start_handler(move |_| {
+                priority::lower_this_thread(nice);
+            })
             .build()
             .context("building the adaptation jobs' thread pool")?;
         let regression = Regression::new(store.clone(), config.regression.clone());

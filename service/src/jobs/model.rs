@@ -94,6 +94,10 @@ pub struct JobsConfig {
     /// Threads of the jobs' own rayon pool (adaptation and gate solves run there, never on the
     /// global pool that serving solves use).
     pub threads: usize,
+    /// How much lower than serving's the OS priority of the job's threads is (a nice
+    /// increment, 0..=19; 0: the same). The job runs in its pool, so this covers its training,
+    /// its solves and the gate.
+    pub nice: i32,
 }
 
 /// Whether an image (by its hex sha256) is held out for the gate: the engine's bucket rule.

@@ -38,6 +38,7 @@ fn recorder(store: &Store, registry: &Arc<Registry>) -> Arc<Jobs> {
         enforce_gate: true,
         poll: Duration::ZERO,
         threads: 1,
+        nice: 0,
     };
     Jobs::start(store.clone(), registry.clone(), Buffer::new(store.clone(), 500), config).unwrap()
 }
