@@ -1,6 +1,7 @@
 //! Whether libtorch's CPU backbone gives a crop the same features whatever it is batched with,
 //! and what the differences do to the answers: the measurement behind
-//! `engine::estimator::Estimator::features` (a lone crop padded to two, CPU passes cut at 15)
+//! `engine::backbone::invariant` (a batch of one's small convolutions run as a batch of two) and
+//! `engine::estimator::Estimator::features` (CPU passes cut at 15)
 //! and docs/ARCHITECTURE.md's "Answers are deterministic".
 //!
 //! ```text

@@ -160,7 +160,7 @@ impl PoseEstimate {
     }
 }
 
-/// The most crops of a CPU backbone pass whose features match any other pass's of 2 or more
+/// The most crops of a CPU backbone pass whose features match any smaller pass's
 /// ([`Estimator::features`]).
 pub const MAX_INVARIANT_PASS: usize = 15;
 
@@ -185,30 +185,20 @@ impl Estimator {
         features(&self.model.backbone, &images.to_device(self.model.vs.device()))
     }
 
-    /// Features of each crop, in backbone passes of at most `max_batch` crops. With `max_batch`
-    /// 1 every pass holds one crop; otherwise every pass holds between 2 and
-    /// [`MAX_INVARIANT_PASS`] crops on the CPU (a lone crop is padded with a blank one), so a
-    /// crop's features, and its answer, never depend on what else was in the queue.
-    ///
-    /// Why those bounds (measured by `bench/examples/batch_invariance.rs`, libtorch 2.13 on the
-    /// CPU): within them a crop's features are bit-identical whatever else shares the pass, its
-    /// place in it and the pass's size; outside them libtorch switches kernels. ATen's
-    /// `ConvParams::use_mkldnn` sends the small convolutions of a batch of *one* to its native
-    /// kernels rather than oneDNN's (features then differ by up to 6e-7 relative, enough to move
-    /// an answer by 10° where the loss is flat), and with one torch thread it sends 1×1
-    /// convolutions to oneDNN only from 16 images on.
+    /// Features of each crop, in backbone passes of at most `max_batch` crops (at most
+    /// [`MAX_INVARIANT_PASS`] on the CPU), so that a crop's features, and its answer, never
+    /// depend on what else was in the queue: measured by `bench/examples/batch_invariance.rs`
+    /// (libtorch 2.13 on the CPU), a crop's features are bit-identical whatever shares its pass,
+    /// its place in it and the pass's size, once the backbone runs a batch of one's small
+    /// convolutions as a batch of two (`backbone::invariant`). The one exception left is ATen's
+    /// rule for 1×1 convolutions with one torch thread: oneDNN only from 16 images on, hence the cap.
     pub fn features(&self, crops: &[&Crop], max_batch: usize) -> Result<Vec<Features>> {
         let cpu = self.model.vs.device() == tch::Device::Cpu;
         let pass = if cpu { max_batch.clamp(1, MAX_INVARIANT_PASS) } else { max_batch.max(1) };
         let mut out = Vec::with_capacity(crops.len());
         for chunk in crops.chunks(pass) {
-            let mut rows: Vec<Tensor> = chunk.iter().map(|c| c.tensor()).collect();
-            if rows.len() == 1 && pass > 1 {
-                rows.push(rows[0].zeros_like());
-            }
-            let mut features = self.batch_features(&Tensor::cat(&rows, 0))?;
-            features.truncate(chunk.len());
-            out.extend(features);
+            let rows: Vec<Tensor> = chunk.iter().map(|c| c.tensor()).collect();
+            out.extend(self.batch_features(&Tensor::cat(&rows, 0))?);
         }
         Ok(out)
     }

@@ -99,10 +99,8 @@ struct Args {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     workers: u32,
     /// Most crops per backbone pass: the crops of concurrent requests (and a request's boxes)
-    /// share passes. Either way an image's answer does not depend on the load: with more than
-    /// 1, a lone crop is padded to a pass of 2 and CPU passes hold at most 15, the range where
-    /// libtorch's kernels give every crop the same features; 1 runs every crop alone (features
-    /// a few ulps off the batched ones, which can move an answer where the loss is flat).
+    /// share passes. An image's answer does not depend on it nor on the load (CPU passes hold
+    /// at most 15 crops, the range where libtorch gives every crop the same features).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=256))]
     max_batch: u32,
     /// How long the first request of a batch waits for others, in milliseconds.

@@ -1,6 +1,6 @@
 //! 16 clients × 50 requests: no errors, and every answer bit-identical to the sequential one
 //! (`--max-batch 1`); with dynamic batching, batches share backbone passes and answers are
-//! bit-identical to each image's answer alone too;
+//! bit-identical to each image's answer alone too, and to `--max-batch 1`'s;
 //! a saturated queue refuses at once with UNAVAILABLE / 503 and Retry-After, never queueing
 //! without bound. Needs `make test`'s quick model and data.
 
@@ -26,24 +26,26 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
 
     // 1. No batching: bit-identical under concurrency.
     let server = Server::config("concurrency").quick_model().arg("--max-batch").arg("1").start();
-    let alone = runtime.block_on(sequential(&server, &images));
+    let unbatched = runtime.block_on(sequential(&server, &images));
     let answers = runtime.block_on(hammer(&server, &images, CLIENTS, REQUESTS, 0));
     assert_eq!(answers.len(), CLIENTS * REQUESTS);
     for (i, p) in answers {
-        assert_eq!(bits(&p), bits(&alone[i]), "image {i}: concurrent answer differs from the sequential one");
+        assert_eq!(bits(&p), bits(&unbatched[i]), "image {i}: concurrent answer differs from the sequential one");
     }
     drop(server);
 
     // 2. Dynamic batching: batches of more than one crop form and share backbone passes, and
-    // answers are still bit-identical to the ones each image gets alone: a lone crop is padded to
-    // a pass of two, and passes of 2..=15 crops give a crop the same features whatever else is in
-    // them (engine::estimator::Estimator::features).
+    // answers are still bit-identical to the ones each image gets alone (engine::backbone::invariant,
+    // engine::estimator::Estimator::features).
     let server =
         Server::config("batching").quick_model().arg("--max-batch").arg("8").arg("--max-delay-ms").arg("20").start();
     let alone = runtime.block_on(sequential(&server, &images));
     let answers = runtime.block_on(hammer(&server, &images, CLIENTS, 3, 0));
     for (i, p) in &answers {
         assert_eq!(bits(p), bits(&alone[*i]), "image {i}: a batched answer differs from the answer alone");
+    }
+    for (i, (a, u)) in alone.iter().zip(&unbatched).enumerate() {
+        assert_eq!(bits(a), bits(u), "image {i}: --max-batch 8 answers differently from --max-batch 1");
     }
     assert!(batched_passes(&server) > 0.0, "no pass held more than one crop\n{}", server.get("/metrics").1);
     drop(server);

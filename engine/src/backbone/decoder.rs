@@ -7,6 +7,7 @@
 use tch::nn::{self, Init};
 use tch::{Kind, Tensor};
 
+use super::invariant::{conv, conv_with};
 use super::{DecoderWidths, bn};
 
 /// L2 normalisation floor, as `torch.nn.functional.normalize`.
@@ -35,7 +36,8 @@ impl DoubleConv {
     }
 
     fn forward_t(&self, x: &Tensor, train: bool) -> Tensor {
-        x.apply(&self.conv_a).apply_t(&self.bn_a, train).relu().apply(&self.conv_b).apply_t(&self.bn_b, train).relu()
+        let y = conv(x, &self.conv_a).apply_t(&self.bn_a, train).relu();
+        conv(&y, &self.conv_b).apply_t(&self.bn_b, train).relu()
     }
 
     /// Bilinear upsampling (align_corners) of `x` to the tap's size (×2 for inputs that are
@@ -77,7 +79,8 @@ impl Decoder {
         let y = self.upsample0.forward_t(t32, train);
         let y = self.upsample1.up(&y, t16, train);
         let y = self.upsample2.up(&y, t8, train);
-        let y = y.conv2d(&self.out_layer, None::<Tensor>, [1, 1], [0, 0], [1, 1], 1);
+        let y =
+            conv_with(&y, &self.out_layer, |y| y.conv2d(&self.out_layer, None::<Tensor>, [1, 1], [0, 0], [1, 1], 1));
         // sqrt(Σy² + ε²), not max(‖y‖, ε): the norm's gradient is 0/0 at a zero vector, which
         // fine-tuning can reach (a pixel whose decoder activations all die).
         let norm = (y.square().sum_dim_intlist([1i64].as_slice(), true, Kind::Float) + NORM_EPS * NORM_EPS).sqrt();

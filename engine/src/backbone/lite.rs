@@ -17,6 +17,7 @@
 use tch::nn;
 use tch::{Kind, Tensor};
 
+use super::invariant::conv;
 use super::resnet::CONV_INIT;
 use super::{Arch, IMAGENET_MEAN, IMAGENET_STD, bn};
 
@@ -117,7 +118,7 @@ impl Conv {
     }
 
     fn forward(&self, x: &Tensor) -> Tensor {
-        if self.stride == 1 { x.apply(&self.conv) } else { pad_same(x, self.kernel, self.stride).apply(&self.conv) }
+        if self.stride == 1 { conv(x, &self.conv) } else { conv(&pad_same(x, self.kernel, self.stride), &self.conv) }
     }
 }
 

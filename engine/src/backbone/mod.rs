@@ -17,6 +17,7 @@
 //! never sets libtorch's thread count.
 
 mod decoder;
+mod invariant;
 mod lite;
 mod resnet;
 

@@ -5,7 +5,7 @@
 use tch::Tensor;
 use tch::nn::{self, Init};
 
-use super::{Arch, bn};
+use super::{Arch, bn, invariant};
 
 /// torchvision's ResNet init: kaiming normal, fan out, ReLU gain.
 pub(super) const CONV_INIT: Init = Init::Kaiming {
@@ -74,13 +74,13 @@ impl Block {
         let last = self.convs.len() - 1;
         let mut y = x.shallow_clone();
         for (i, (conv, norm)) in self.convs.iter().enumerate() {
-            y = y.apply(conv).apply_t(norm, train);
+            y = invariant::conv(&y, conv).apply_t(norm, train);
             if i < last {
                 y = y.relu();
             }
         }
         let identity = match &self.downsample {
-            Some((conv, norm)) => x.apply(conv).apply_t(norm, train),
+            Some((conv, norm)) => invariant::conv(x, conv).apply_t(norm, train),
             None => x.shallow_clone(),
         };
         (y + identity).relu()
