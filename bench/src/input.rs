@@ -156,11 +156,7 @@ fn measure(args: &InputArgs) -> Result<()> {
                 let crops = crops(&header.decode_for(&frame, limits, r)?, &boxes, size)?;
                 let refs: Vec<&Crop> = crops.iter().collect();
                 let features = estimator.features(&refs, max_batch)?;
-                Ok(crops
-                    .iter()
-                    .zip(&features)
-                    .map(|(c, f)| estimator.estimate_features(c, f))
-                    .collect::<Result<Vec<_>, _>>()?)
+                Ok(estimator.estimate_all(&refs, &features).into_iter().collect::<Result<Vec<_>, _>>()?)
             })?;
             eprintln!("{k} boxes, passes of {max_batch}: {ms:.1} ms");
             row[key] = json!(ms);

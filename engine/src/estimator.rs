@@ -10,7 +10,7 @@ use crate::camera::{Camera, Pose};
 use crate::checkpoint::{Model, NeuralMesh};
 use crate::error::{EngineError, Result};
 use crate::input::{Crop, CropBox};
-use crate::mesh::Mesh;
+use crate::mesh::{Cuboid, Mesh};
 use crate::solver::{
     Estimate, FeatureMap, GridRenders, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid,
 };
@@ -205,7 +205,30 @@ impl Estimator {
 
     /// The answer for a crop whose features are `features`.
     pub fn estimate_features(&self, crop: &Crop, features: &Features) -> Result<PoseEstimate> {
-        self.answer(crop, self.solver.solve(features)?)
+        answer(&self.model.manifest.cuboid, crop, self.solver.solve(features)?)
+    }
+
+    /// The answers for crops whose features are `features`, with each solve's milliseconds. The
+    /// crops are solved in parallel (rayon): a solve keeps one core busy once its hypotheses
+    /// are pruned to one, so a batch's solves, or a request's boxes, would otherwise leave the
+    /// other cores idle. Each answer is the same as [`Estimator::estimate_features`]'s.
+    pub fn estimate_all(&self, crops: &[&Crop], features: &[Features]) -> Vec<Result<(PoseEstimate, f64)>> {
+        use rayon::prelude::*;
+        if crops.len() != features.len() {
+            let e = || EngineError::InvalidInput(format!("{} crops but {} feature maps", crops.len(), features.len()));
+            return crops.iter().map(|_| Err(e())).collect();
+        }
+        // The tch model is not Sync; the solver and the cuboid are all a solve needs.
+        let (solver, cuboid) = (&self.solver, &self.model.manifest.cuboid);
+        crops
+            .par_iter()
+            .zip(features)
+            .map(|(crop, f)| {
+                let started = std::time::Instant::now();
+                let estimate = answer(cuboid, crop, solver.solve(f)?)?;
+                Ok((estimate, started.elapsed().as_secs_f64() * 1e3))
+            })
+            .collect()
     }
 
     /// Image in, pose out, for one crop.
@@ -213,18 +236,20 @@ impl Estimator {
         let features = self.features(&[crop], 1)?;
         self.estimate_features(crop, &features[0])
     }
+}
 
-    fn answer(&self, crop: &Crop, estimate: Estimate) -> Result<PoseEstimate> {
-        let p = estimate.pose;
-        let r = p.rotation();
-        Ok(PoseEstimate {
-            degrees: [p.azimuth.to_degrees(), p.elevation.to_degrees(), p.theta.to_degrees()],
-            rotation: std::array::from_fn(|i| r[(i / 3, i % 3)]),
-            crop_box: crop.crop_box,
-            cuboid: crop.project_cuboid(&self.model.manifest.cuboid, &p)?,
-            estimate,
-        })
-    }
+/// A solver's estimate as the answer for `crop`: angles in degrees, the rotation matrix, the
+/// cuboid's corners in image pixels.
+fn answer(cuboid: &Cuboid, crop: &Crop, estimate: Estimate) -> Result<PoseEstimate> {
+    let p = estimate.pose;
+    let r = p.rotation();
+    Ok(PoseEstimate {
+        degrees: [p.azimuth.to_degrees(), p.elevation.to_degrees(), p.theta.to_degrees()],
+        rotation: std::array::from_fn(|i| r[(i / 3, i % 3)]),
+        crop_box: crop.crop_box,
+        cuboid: crop.project_cuboid(cuboid, &p)?,
+        estimate,
+    })
 }
 
 /// The normalised mean of a clutter bank (M×D) as one clutter vector (1×D).

@@ -65,3 +65,18 @@ fn the_runner_up_gap_is_the_lead_over_the_best_distant_hypothesis() {
     assert_eq!(estimate(vec![hypothesis(0.0, 0.2), hypothesis(20.0, 0.3)]).runner_up_gap(sep), None);
     assert_eq!(estimate(vec![hypothesis(0.0, 0.2)]).runner_up_gap(sep), None);
 }
+
+#[test]
+fn crops_solved_in_parallel_get_the_answers_they_get_one_by_one() {
+    let estimator = Estimator::new(support::random_model(4, [64, 160], "parallel"), SolverConfig::default()).unwrap();
+    let crops = crops(5);
+    let all: Vec<_> = crops.iter().collect();
+    let features = estimator.features(&all, 8).unwrap();
+    let together = estimator.estimate_all(&all, &features);
+    for ((crop, f), got) in all.iter().zip(&features).zip(together) {
+        let (got, ms) = got.unwrap();
+        assert_eq!(got.estimate, estimator.estimate_features(crop, f).unwrap().estimate);
+        assert!(ms >= 0.0);
+    }
+    assert!(estimator.estimate_all(&all, &features[..2]).iter().all(Result::is_err), "a count mismatch is an error");
+}

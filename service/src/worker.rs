@@ -250,20 +250,18 @@ fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
-/// The backbone over the crops, in passes of at most `max_batch`, then the solver per crop.
+/// The backbone over the crops, in passes of at most `max_batch`, then the crops' solves in
+/// parallel.
 /// Returns each crop's answer and solver time, and the backbone's time.
 fn infer(loaded: &Loaded, crops: &[&Crop], config: &WorkerConfig) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
     let features = loaded.estimator.features(crops, config.max_batch)?;
     let backbone_ms = ms(started.elapsed());
-    let results = crops
-        .iter()
-        .zip(&features)
-        .map(|(crop, f)| {
-            let t = Instant::now();
-            let estimate = loaded.estimator.estimate_features(crop, f)?;
-            Ok((answer(loaded, estimate), ms(t.elapsed())))
-        })
+    let results = loaded
+        .estimator
+        .estimate_all(crops, &features)
+        .into_iter()
+        .map(|r| Ok(r.map(|(estimate, ms)| (answer(loaded, estimate), ms))?))
         .collect();
     Ok((results, backbone_ms))
 }
