@@ -19,11 +19,14 @@ use crate::{AdaptArgs, JOB_NOT_ACTIVATED, output, output::UploadSummary};
 /// `udapose adapt`: upload, start a job, follow it.
 pub(crate) async fn adapt(client: &Client, args: AdaptArgs) -> Result<ExitCode> {
     let files = output::list_images(&args.images)?;
-    let summary = upload(client, &args.category, &files, args.json).await?;
+    let summary = upload(client, &args.category, &files, args.anchor, args.json).await?;
     if args.json {
         println!("{}", summary.json());
     } else {
         summary.lines().iter().for_each(|l| println!("{l}"));
+    }
+    if args.anchor {
+        return Ok(ExitCode::SUCCESS); // anchors start no job
     }
 
     let overrides = AdaptOverrides { max_rounds: args.max_rounds, learning_rate: args.learning_rate, seed: args.seed };
@@ -43,8 +46,9 @@ pub(crate) async fn adapt(client: &Client, args: AdaptArgs) -> Result<ExitCode> 
     watch(client, &job.job_id, 0, args.json).await
 }
 
-/// Uploads `files` over StreamTargets with a progress bar (on stderr, when it is a terminal).
-async fn upload(client: &Client, category: &str, files: &[PathBuf], json: bool) -> Result<UploadSummary> {
+/// Uploads `files` over StreamTargets (to the buffer, or the anchor set) with a progress bar (on
+/// stderr, when it is a terminal).
+async fn upload(client: &Client, category: &str, files: &[PathBuf], anchor: bool, json: bool) -> Result<UploadSummary> {
     let bar = ProgressBar::new(files.len() as u64).with_style(
         ProgressStyle::with_template("{spinner} uploading [{bar:30}] {pos}/{len} {msg} ({eta})")
             .expect("a valid template")
@@ -68,8 +72,10 @@ async fn upload(client: &Client, category: &str, files: &[PathBuf], json: bool) 
             anyhow::Ok(())
         }
     });
-    let mut summary = UploadSummary::new(category);
-    let mut uploads = client.stream_targets(category, ReceiverStream::new(rx));
+    let mut summary = UploadSummary { anchor, ..UploadSummary::new(category) };
+    let images = ReceiverStream::new(rx);
+    let mut uploads =
+        if anchor { client.stream_anchors(category, images) } else { client.stream_targets(category, images) };
     let result = async {
         while let Some(upload) = uploads.message().await? {
             summary.add(&upload);

@@ -199,6 +199,11 @@ struct AdaptArgs {
     /// A folder of PNG/JPEG/WebP images (not its subfolders), uploaded in name order.
     #[arg(long, value_name = "DIR")]
     images: PathBuf,
+    /// Keep the images in the category's anchor set instead, and start no job: conditions the
+    /// model must keep handling, which the gate guards for every later job (no job trains on
+    /// them; at most 128 per category). See them with `udapose jobs sets CATEGORY`.
+    #[arg(long)]
+    anchor: bool,
     /// Print the job and exit once it is started, without following it.
     #[arg(long)]
     no_follow: bool,

@@ -44,9 +44,11 @@ pub struct UploadSummary {
     pub rejected: Vec<(String, String)>,
     /// Images sent more than once (a broken stream, or BUFFER_FULL).
     pub resent: usize,
-    /// The buffer's fill and size after the last ack.
+    /// The buffer's fill and size after the last ack (the anchor set's, for anchors).
     pub buffered: u32,
     pub capacity: u32,
+    /// Whether the images went to the category's anchor set.
+    pub anchor: bool,
 }
 
 impl UploadSummary {
@@ -80,10 +82,11 @@ impl UploadSummary {
     /// then `rejected <name>: <reason>` per rejected image.
     pub fn lines(&self) -> Vec<String> {
         let mut lines = vec![format!(
-            "uploaded {} images to {}: {} (buffer {}/{})",
+            "uploaded {} images to {}: {} ({} {}/{})",
             self.images,
             self.category,
             self.counts(),
+            if self.anchor { "anchor set" } else { "buffer" },
             self.buffered,
             self.capacity
         )];
@@ -96,7 +99,7 @@ impl UploadSummary {
         json!({ "uploads": {
             "category": self.category, "images": self.images, "accepted": self.accepted,
             "duplicate": self.duplicate, "rejected": rejected, "resent": self.resent,
-            "buffered": self.buffered, "capacity": self.capacity,
+            "buffered": self.buffered, "capacity": self.capacity, "anchor": self.anchor,
         }})
     }
 }

@@ -636,4 +636,25 @@ fn a_job_that_would_erase_an_earlier_gain_is_rejected() {
     let ids: Vec<&str> = sets["sets"].as_array().unwrap().iter().map(|s| s["set_id"].as_str().unwrap()).collect();
     assert_eq!(ids, ["anchor", fog_id], "{sets}");
     assert_eq!((sets["sets"][0]["kind"].as_str(), sets["sets"][0]["images"].as_u64()), (Some("ANCHOR"), Some(5)));
+
+    // The CLI adds anchors over gRPC (two new images, one already held) and starts no job.
+    let folder = std::env::temp_dir().join(format!("anchors-{}", std::process::id()));
+    std::fs::create_dir_all(&folder).unwrap();
+    for (i, image) in quick_images("source", 7)[4..].iter().enumerate() {
+        std::fs::write(folder.join(format!("{i}.png")), &image.bytes).unwrap();
+    }
+    let jobs = || serde_json::from_str::<Value>(&server.get("/v1/jobs").1).unwrap()["jobs"].as_array().unwrap().len();
+    let jobs_before = jobs();
+    let (ok, stdout, stderr) =
+        udapose(&server, &["adapt", "--anchor", "--category", "car", "--images", folder.to_str().unwrap()]);
+    std::fs::remove_dir_all(&folder).unwrap();
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("uploaded 3 images to car: 2 accepted, 1 duplicate, 0 rejected (anchor set 7/128)"),
+        "{stdout}"
+    );
+    assert_eq!(jobs(), jobs_before, "an anchor upload started a job");
+    let (_, body) = server.get("/v1/adapt/car/regression-sets");
+    let sets: Value = serde_json::from_str(&body).unwrap();
+    assert_eq!(sets["sets"][0]["images"].as_u64(), Some(7), "{sets}");
 }

@@ -103,10 +103,27 @@ impl Client {
     where
         S: Stream<Item = (String, Vec<u8>)> + Send + 'static,
     {
+        self.stream(category, false, images)
+    }
+
+    /// Like [`Client::stream_targets`], into the category's anchor set instead of its
+    /// adaptation buffer: images of the conditions the model must keep handling, a regression
+    /// set the gate guards for every later job (no job trains on them; at most 128).
+    pub fn stream_anchors<S>(&self, category: &str, images: S) -> Uploads
+    where
+        S: Stream<Item = (String, Vec<u8>)> + Send + 'static,
+    {
+        self.stream(category, true, images)
+    }
+
+    fn stream<S>(&self, category: &str, anchor: bool, images: S) -> Uploads
+    where
+        S: Stream<Item = (String, Vec<u8>)> + Send + 'static,
+    {
         let (out, rx) = mpsc::channel(2 * WINDOW);
         let (client, category) = (self.clone(), category.to_owned());
         tokio::spawn(async move {
-            if let Err(e) = upload(&client, &category, Box::pin(images), &out).await {
+            if let Err(e) = upload(&client, &category, anchor, Box::pin(images), &out).await {
                 let _ = out.send(Err(e)).await;
             }
         });
@@ -200,10 +217,12 @@ impl Client {
 async fn upload(
     client: &Client,
     category: &str,
+    anchor: bool,
     mut images: Images,
     out: &mpsc::Sender<Result<Upload, Error>>,
 ) -> Result<(), Error> {
     let mut ledger = Ledger::new(client.buffer_full_retries, client.buffer_full_backoff);
+    ledger.anchor = anchor;
     let mut input_done = false;
     let mut tries = Tries::default();
     loop {
@@ -389,6 +408,8 @@ struct Ledger {
     waiting: Vec<Pending>,
     done: BTreeMap<usize, Upload>,
     next_ready: usize,
+    /// Whether the images go to the anchor set (`TargetImage.anchor`).
+    anchor: bool,
 }
 
 impl Ledger {
@@ -401,6 +422,7 @@ impl Ledger {
             in_flight: VecDeque::new(),
             waiting: Vec::new(),
             done: BTreeMap::new(),
+            anchor: false,
             next_ready: 0,
         }
     }
@@ -435,7 +457,7 @@ impl Ledger {
     fn send_next(&mut self, category: &str) -> Option<TargetImage> {
         let mut pending = self.to_send.pop_front()?;
         pending.sends += 1;
-        let message = TargetImage { category: category.into(), image: pending.image.clone(), anchor: false };
+        let message = TargetImage { category: category.into(), image: pending.image.clone(), anchor: self.anchor };
         self.in_flight.push_back(pending);
         Some(message)
     }
