@@ -13,7 +13,7 @@ use anyhow::{Context, Result, ensure};
 use udapose_client::{Client, ClientOptions};
 use udapose_lab::atomic::write_atomic;
 
-use crate::harness::{ServerProcess, git_commit, machine, read_images, request, server_binary};
+use crate::harness::{ServerProcess, command_line, git_commit, machine, read_images, request, server_binary};
 
 const TOKEN: &str = "bench-token";
 const LIMIT: usize = 1_000_000;
@@ -240,7 +240,7 @@ fn noise(n: usize) -> Vec<u8> {
 }
 
 fn markdown(args: &BadInputsArgs, rows: &[Row]) -> String {
-    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let command = command_line();
     let ok = rows.iter().filter(|r| r.ok()).count();
     let mut md = format!(
         "# Bad inputs\n\nEvery bad input of the hostile-user review (issue 21) sent to `udapose-server` on `{}` \

@@ -21,6 +21,17 @@ pub(crate) fn git_commit() -> String {
     udapose_lab::BUILD_COMMIT.to_string()
 }
 
+/// This process's command line as a shell takes it back (an argument with spaces or quotes in
+/// single quotes), for reports: a `--note` is one argument again when the line is pasted.
+pub(crate) fn command_line() -> String {
+    std::env::args().map(|a| shell_quoted(&a)).collect::<Vec<_>>().join(" ")
+}
+
+pub(crate) fn shell_quoted(arg: &str) -> String {
+    let plain = |c: char| c.is_ascii_alphanumeric() || "-_./=:,+@%".contains(c);
+    if !arg.is_empty() && arg.chars().all(plain) { arg.to_owned() } else { format!("'{}'", arg.replace('\'', "'\\''")) }
+}
+
 /// The 1, 5 and 15 minute load averages (`/proc/loadavg`), for reports.
 pub(crate) fn load_average() -> String {
     fs::read_to_string("/proc/loadavg")

@@ -73,4 +73,14 @@ mod tests {
     fn arguments_are_consistent() {
         super::Cli::command().debug_assert();
     }
+
+    #[test]
+    fn a_reports_command_line_quotes_what_a_shell_would_split() {
+        let q = super::harness::shell_quoted;
+        assert_eq!(q("--images"), "--images");
+        assert_eq!(q("data/a-b_c.png"), "data/a-b_c.png");
+        assert_eq!(q("quick set, 64x160"), "'quick set, 64x160'");
+        assert_eq!(q("it's"), "'it'\\''s'");
+        assert_eq!(q(""), "''");
+    }
 }

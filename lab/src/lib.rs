@@ -18,5 +18,6 @@ pub const BUILD_COMMIT: &str = env!("UDAPOSE_BUILD_COMMIT");
 /// CPU model and thread count, for reports.
 pub fn machine() -> String {
     let cpu = udapose_engine::runtime::cpu_model();
-    format!("{cpu}, {} threads", rayon::current_num_threads())
+    let n = rayon::current_num_threads();
+    format!("{cpu}, {n} thread{}", if n == 1 { "" } else { "s" })
 }

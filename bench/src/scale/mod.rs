@@ -35,8 +35,8 @@ use tokio::runtime::Runtime;
 use udapose_lab::atomic::write_atomic;
 
 use crate::harness::{
-    estimate, free_addrs, git_commit, load_average, median, min_median_max, percentile, read_images, server_binary,
-    server_log_json,
+    command_line, estimate, free_addrs, git_commit, load_average, median, min_median_max, percentile, read_images,
+    server_binary, server_log_json,
 };
 use fleet::{Fleet, Node, S3};
 use load::replica_levels;
@@ -136,7 +136,7 @@ pub fn run(args: &ScaleArgs) -> Result<()> {
     );
     ensure!(args.fault_clients >= 1 && args.targets >= 1, "--fault-clients and --targets must be at least 1");
     let began = Instant::now();
-    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let command = command_line();
     let load_before = load_average();
     let data = args.data.clone().unwrap_or_else(|| cache_dir().join("run/syncar-quick"));
     let images_dir = data.join("source/test/images/car");

@@ -27,7 +27,9 @@ use serde_json::{Value, json};
 use udapose_engine::checkpoint;
 use udapose_lab::atomic::write_atomic;
 
-use crate::harness::{Level, ServerProcess, git_commit, load_average, post_or_get, read_images, server_binary};
+use crate::harness::{
+    Level, ServerProcess, command_line, git_commit, load_average, post_or_get, read_images, server_binary,
+};
 
 #[derive(clap::Args)]
 pub struct ServiceArgs {
@@ -107,7 +109,7 @@ type Mode = (&'static str, usize, Vec<Level>);
 pub fn run(args: &ServiceArgs) -> Result<()> {
     ensure!(args.requests >= 1 && args.distinct >= 1, "--requests and --distinct must be at least 1");
     ensure!(args.adapt_clients >= 1, "--adapt-clients must be at least 1");
-    let command = std::env::args().collect::<Vec<_>>().join(" ");
+    let command = command_line();
     let load_before = load_average();
     let images = read_images(&args.images, args.distinct)?;
     let server_bin = server_binary(args.server.as_deref())?;
