@@ -78,12 +78,13 @@ fn main() -> Result<()> {
         }
         same[0] += usize::from(first.data == second.data);
         same[1] += usize::from(first.data == last.data);
+        // How much worse a moved answer is by the loss on the crop's own (batch 1) features.
+        let problem = solver.problem(&alone)?;
+        let mut scratch = Scratch::default();
+        let reference_loss = problem.loss(&mut scratch, &reference.pose)?;
         for (row, f) in rows.iter_mut().zip([&first, &second, &last]) {
             let pose = solver.solve(f)?.pose;
-            // How much worse the moved answer is by the loss on the crop's own (batch 1) features.
-            let problem = solver.problem(&alone)?;
-            let mut scratch = Scratch::default();
-            let worse = problem.loss(&mut scratch, &pose)? - problem.loss(&mut scratch, &reference.pose)?;
+            let worse = problem.loss(&mut scratch, &pose)? - reference_loss;
             row.add(&alone, f, &reference.pose, &pose, &reference, worse);
         }
     }

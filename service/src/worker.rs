@@ -251,8 +251,7 @@ fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
 /// The backbone over the crops, in passes of at most `max_batch`, then the crops' solves in
-/// parallel.
-/// Returns each crop's answer and solver time, and the backbone's time.
+/// parallel. Returns each crop's answer and solver time, and the backbone's time.
 fn infer(loaded: &Loaded, crops: &[&Crop], config: &WorkerConfig) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
     let features = loaded.estimator.features(crops, config.max_batch)?;
