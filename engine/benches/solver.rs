@@ -222,7 +222,7 @@ fn time_pieces(
     };
     let p = set[0].height * set[0].width;
     bench(
-        "S = C·F + clutter map (Problem::new, matrixmultiply, rayon)".into(),
+        "features transposed + clutter map (Problem::new; S entries are computed as read)".into(),
         time_us(|i| {
             black_box(Problem::new(&mesh_model, &maps[i % maps.len()], crop, 8).unwrap());
         }),

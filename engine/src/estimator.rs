@@ -12,7 +12,8 @@ use crate::error::{EngineError, Result};
 use crate::input::{Crop, CropBox};
 use crate::mesh::{Cuboid, Mesh};
 use crate::solver::{
-    Estimate, FeatureMap, GridRenders, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses, solve_from_grid,
+    CuboidCaster, Estimate, FeatureMap, GridRenders, NeuralMeshView, Problem, ScoredPose, SolverConfig, grid_losses,
+    solve_from_grid,
 };
 
 /// One image's backbone features: `dim × height × width`, row-major, on the host.
@@ -55,6 +56,8 @@ pub struct PoseSolver {
     pub config: SolverConfig,
     /// The grid's renders for `config` (image-independent, made once); used while they fit it.
     grid: GridRenders,
+    /// The mesh's ray caster, detected once (`None`: not a cuboid mesh, rasterised).
+    caster: Option<CuboidCaster>,
 }
 
 impl PoseSolver {
@@ -70,7 +73,8 @@ impl PoseSolver {
         config.validate()?;
         NeuralMeshView::new(&mesh, &vertex_features, &clutter, dim)?;
         let grid = GridRenders::new(&mesh, &camera, &config)?;
-        Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config, grid })
+        let caster = CuboidCaster::detect(&mesh);
+        Ok(PoseSolver { mesh, vertex_features, clutter, dim, camera, config, grid, caster })
     }
 
     /// From a mesh and its tensors (`R × dim`, `N × dim`), seen through the crop camera.
@@ -113,7 +117,13 @@ impl PoseSolver {
 
     /// One image prepared for pose evaluation (`S = C·F` and the clutter map).
     pub fn problem<'a>(&'a self, features: &'a Features) -> Result<Problem<'a>> {
-        Problem::new(&self.mesh_model()?, &features.map()?, &self.camera, self.config.stride)
+        Problem::with_caster(
+            &self.mesh_model()?,
+            &features.map()?,
+            &self.camera,
+            self.config.stride,
+            self.caster.filter(|_| self.config.ray_cast),
+        )
     }
 
     /// Render and compare (METHOD.md §6): the pose in the image whose features are `features`.

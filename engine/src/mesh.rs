@@ -126,7 +126,12 @@ impl Cuboid {
     /// The surface mesh: each face a regular grid of its own vertices (faces share none), two
     /// triangles per cell, wound counter-clockwise seen from outside.
     pub fn mesh(&self, target_vertices: usize) -> Mesh {
-        let n = self.grid_counts(target_vertices);
+        self.mesh_with_counts(self.grid_counts(target_vertices))
+    }
+
+    /// [`Cuboid::mesh`] with `n` samples along x, y and z (each at least 2).
+    pub fn mesh_with_counts(&self, n: [usize; 3]) -> Mesh {
+        let n = n.map(|k| k.max(2));
         let mut vertices = Vec::new();
         let mut faces = Vec::new();
         for axis in 0..3 {

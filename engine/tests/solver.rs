@@ -95,12 +95,12 @@ fn similarity_clutter_map_and_loss_match_their_definitions() {
     for px in (0..p).step_by(7) {
         for v in (0..r).step_by(13) {
             let dot: f32 = (0..DIM).map(|d| m.vertex_features[v * DIM + d] * f(d, px)).sum();
-            worst = worst.max((dot - prob.similarity()[px * r + v]).abs());
+            worst = worst.max((dot - prob.similarity(px, v)).abs());
         }
         let clu: f32 = (0..DIM).map(|d| m.clutter[d] * f(d, px)).sum();
         assert!((clu - prob.clutter_map()[px]).abs() < 1e-5);
     }
-    assert!(worst < 1e-5, "GEMM off by {worst}");
+    assert!(worst < 1e-5, "S off by {worst}");
 
     // L = 1 − (mean max(obj, clu) − mean clu), directly from a render.
     let grid = crop().at_stride(8).unwrap();
@@ -151,7 +151,6 @@ fn frozen_loss(m: &SyntheticModel, prob: &Problem, at: &Pose, pose: &Pose) -> f6
     let mut raster = Rasterizer::new();
     let frags = raster.render_faces(&m.mesh, &grid, at).unwrap();
     let view = View::new(&grid, pose).unwrap();
-    let r = m.mesh.vertices().len();
     let edge = |a: [f64; 3], b: [f64; 3], q: [f64; 2]| (b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0]);
     let mut sum = 0.0;
     for (px, &face) in frags.face.iter().enumerate() {
@@ -159,7 +158,7 @@ fn frozen_loss(m: &SyntheticModel, prob: &Problem, at: &Pose, pose: &Pose) -> f6
             continue;
         }
         let idx = m.mesh.faces()[face as usize].map(|v| v as usize);
-        let s = idx.map(|v| prob.similarity()[px * r + v] as f64);
+        let s = idx.map(|v| prob.similarity(px, v) as f64);
         let w0 = frags.barycentric[px];
         let clu = prob.clutter_map()[px] as f64;
         let obj0: f64 = (0..3).map(|k| w0[k] as f64 * s[k]).sum();

@@ -73,6 +73,8 @@ struct Row {
     /// The fixed 150-step schedule without pruning (the default before plateau stopping).
     fixed: Solved,
     method: Solved,
+    /// The default with every pose rasterised: the solver before the ray caster.
+    rasterised: Solved,
     reference: Solved,
     same_inits: bool,
 }
@@ -141,6 +143,7 @@ fn paired_accuracy(rows: &[Row]) -> serde_json::Value {
         "udapose": compare(|r| &r.fast, |r| &r.reference),
         "udapose_method": compare(|r| &r.method, |r| &r.reference),
         "udapose_vs_fixed": compare(|r| &r.fast, |r| &r.fixed),
+        "udapose_vs_rasterised": compare(|r| &r.fast, |r| &r.rasterised),
     })
 }
 
@@ -203,6 +206,8 @@ pub fn run(args: &SolverArgs) -> Result<()> {
     let method_config =
         SolverConfig { optimizer: Optimizer::Adam(AdamConfig::method()), ..fixed_solver.config.clone() };
     let method_solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], method_config)?;
+    let raster_config = SolverConfig { ray_cast: false, ..solver.config.clone() };
+    let raster_solver = PoseSolver::for_neural_mesh(&model.neural_mesh, [h, w], raster_config)?;
     let mesh_model = solver.mesh_model()?;
     let reference_config = ReferenceConfig { parallel_hypotheses: args.reference_parallel, ..Default::default() };
     if args.backbone_torch_threads < 0 {
@@ -217,7 +222,7 @@ pub fn run(args: &SolverArgs) -> Result<()> {
     let grid = solver.camera().at_stride(solver.config.stride)?;
 
     let images = backbone_phase(&model, &samples, args.images, &grid, total)?;
-    let fast = udapose_phase(&solver, &fixed_solver, &method_solver, &images)?;
+    let fast = udapose_phase(&solver, [&fixed_solver, &method_solver, &raster_solver], &images)?;
     // The reference under its own torch thread count (switched once: switching per call stalls
     // libtorch's thread pool).
     tch::set_num_threads(args.reference_torch_threads);
@@ -238,6 +243,7 @@ pub fn run(args: &SolverArgs) -> Result<()> {
             stages: udapose.stages,
             fixed: udapose.fixed,
             method: udapose.method,
+            rasterised: udapose.rasterised,
             reference,
         })
         .collect();
@@ -322,17 +328,13 @@ struct Udapose {
     stages: Stages,
     fixed: Solved,
     method: Solved,
+    rasterised: Solved,
     inits: Inits,
 }
 
-/// Phase 2: udapose's solvers (its default, stage by stage; the fixed schedule; METHOD's 300
-/// steps) on those features.
-fn udapose_phase(
-    solver: &PoseSolver,
-    fixed_solver: &PoseSolver,
-    method_solver: &PoseSolver,
-    images: &[Image],
-) -> Result<Vec<Udapose>> {
+/// Phase 2: udapose's solvers (its default, stage by stage; then the fixed schedule, METHOD's
+/// 300 steps and the default rasterised) on those features.
+fn udapose_phase(solver: &PoseSolver, others: [&PoseSolver; 3], images: &[Image]) -> Result<Vec<Udapose>> {
     solver.solve(&images[0].features)?; // warm-up
     let progress = bar(images.len(), "udapose");
     let mut out = Vec::with_capacity(images.len());
@@ -343,10 +345,11 @@ fn udapose_phase(
             let estimate = s.solve(&image.features);
             Solved::new(ms_since(t), estimate, &image.truth)
         };
-        let (fixed, method) = (timed(fixed_solver), timed(method_solver));
+        let [fixed, method, rasterised] = others.map(timed);
         let inits = inits(&estimate);
         let ms = stages.similarity + stages.grid + stages.refine;
-        out.push(Udapose { fast: Solved::new(ms, estimate, &image.truth), stages, fixed, method, inits });
+        let fast = Solved::new(ms, estimate, &image.truth);
+        out.push(Udapose { fast, stages, fixed, method, rasterised, inits });
         progress.inc(1);
     }
     progress.finish();

@@ -14,11 +14,13 @@ struct Summary {
     fast: PoseMetrics,
     fixed: PoseMetrics,
     method: PoseMetrics,
+    rasterised: PoseMetrics,
     reference: PoseMetrics,
     backbone_ms: f64,
     fast_ms: f64,
     fixed_ms: f64,
     method_ms: f64,
+    rasterised_ms: f64,
     reference_ms: f64,
     end_to_end: f64,
     /// Means per image (ms): load (decode + tensor), backbone, similarity, grid, refine.
@@ -29,10 +31,12 @@ struct Summary {
     /// Mean loss evaluations per image.
     fast_evaluations: f64,
     fixed_evaluations: f64,
+    rasterised_evaluations: f64,
     backbone_median: f64,
     fast_median: f64,
     fixed_median: f64,
     method_median: f64,
+    rasterised_median: f64,
     reference_median: f64,
     n: usize,
     same_inits: usize,
@@ -56,11 +60,13 @@ impl Summary {
             fast,
             fixed: metrics(|r| &r.fixed)?,
             method,
+            rasterised: metrics(|r| &r.rasterised)?,
             reference,
             backbone_ms,
             fast_ms,
             fixed_ms: mean(rows.iter().map(|r| r.fixed.ms)),
             method_ms: mean(rows.iter().map(|r| r.method.ms)),
+            rasterised_ms: mean(rows.iter().map(|r| r.rasterised.ms)),
             reference_ms: mean(rows.iter().map(|r| r.reference.ms)),
             end_to_end: load_ms + backbone_ms + fast_ms,
             load_ms,
@@ -69,10 +75,12 @@ impl Summary {
             refine_ms: mean(rows.iter().map(|r| r.stages.refine)),
             fast_evaluations: evaluations(|r| &r.fast),
             fixed_evaluations: evaluations(|r| &r.fixed),
+            rasterised_evaluations: evaluations(|r| &r.rasterised),
             backbone_median: median(rows.iter().map(|r| r.backbone_ms)),
             fast_median: median(rows.iter().map(|r| r.fast.ms)),
             fixed_median: median(rows.iter().map(|r| r.fixed.ms)),
             method_median: median(rows.iter().map(|r| r.method.ms)),
+            rasterised_median: median(rows.iter().map(|r| r.rasterised.ms)),
             reference_median: median(rows.iter().map(|r| r.reference.ms)),
             n: rows.len(),
             same_inits: rows.iter().filter(|r| r.same_inits).count(),
@@ -168,6 +176,14 @@ fn measurements_json(rows: &[Row], s: &Summary) -> Value {
             "metrics": s.fixed,
             "paired": s.paired["udapose_vs_fixed"],
         },
+        "udapose_rasterised": {
+            "note": "udapose's default solver with every pose rasterised (S still computed lazily): the solver before the ray caster, on the same images",
+            "ms_per_image": s.rasterised_ms,
+            "median_ms": s.rasterised_median,
+            "evaluations_per_image": s.rasterised_evaluations,
+            "metrics": s.rasterised,
+            "paired": s.paired["udapose_vs_rasterised"],
+        },
         "udapose_method_steps": {
             "note": "udapose's solver with METHOD's 300-step schedule (the reference's), for a same-steps comparison",
             "ms_per_image": s.method_ms,
@@ -205,6 +221,7 @@ fn per_image_json(rows: &[Row]) -> Vec<Value> {
                 "udapose_stages_ms": [r.stages.similarity, r.stages.grid, r.stages.refine],
                 "udapose_fixed": solved(&r.fixed),
                 "udapose_method": solved(&r.method),
+                "udapose_rasterised": solved(&r.rasterised),
                 "reference": solved(&r.reference),
                 "same_inits": r.same_inits,
             })
@@ -284,14 +301,15 @@ fn table_markdown(s: &Summary, fast: &AdamConfig, prune: &Prune) -> String {
          |---|---:|---:|---:|---:|---:|---:|\n\
          | udapose (Adam ≤ {fs} steps, plateau {pat}, pruned after {pa} at {pm}) | {fast_ms:.1} | {fast_med:.1} | {fe:.0} | {fa:.3} | {fb:.3} | {fc:.1} |\n\
          | udapose, fixed {fs} steps, no pruning | {fixed_ms:.1} | {fixed_med:.1} | {xe:.0} | {xa:.3} | {xb:.3} | {xc:.1} |\n\
+         | udapose's default, every pose rasterised (before the ray caster) | {rast_ms:.1} | {rast_med:.1} | {re:.0} | {rsa:.3} | {rsb:.3} | {rsc:.1} |\n\
          | udapose, METHOD's 300 steps | {method_ms:.1} | {method_med:.1} | | {ma:.3} | {mb:.3} | {mc:.1} |\n\
          | reference (tch autograd render, Adam 300 steps) | {reference_ms:.1} | {ref_med:.1} | | {ra:.3} | {rb:.3} | {rc:.1} |\n\n\
          | stage (udapose's default) | ms per image (mean) | share of end to end |\n\
          |---|---:|---:|\n\
          | decode + tensor (the crop is the image) | {load:.2} | {load_pct:.1}% |\n\
          | backbone | {bb:.2} | {bb_pct:.1}% |\n\
-         | S = C·F and clutter | {sim:.2} | {sim_pct:.1}% |\n\
-         | grid, 144 poses from cached renders | {grid:.2} | {grid_pct:.1}% |\n\
+         | features transposed, clutter map (S is computed as read) | {sim:.2} | {sim_pct:.1}% |\n\
+         | grid, 144 poses from cached renders (S entries computed here) | {grid:.2} | {grid_pct:.1}% |\n\
          | refine, k hypotheses | {refine:.2} | {refine_pct:.1}% |\n\
          | **total** | {total:.2} | solver {solver_pct:.1}% |\n\n",
         fs = fast.steps,
@@ -300,6 +318,12 @@ fn table_markdown(s: &Summary, fast: &AdamConfig, prune: &Prune) -> String {
         pm = prune.margin,
         fe = s.fast_evaluations,
         xe = s.fixed_evaluations,
+        rast_ms = s.rasterised_ms,
+        rast_med = s.rasterised_median,
+        re = s.rasterised_evaluations,
+        rsa = s.rasterised.acc_pi_6,
+        rsb = s.rasterised.acc_pi_18,
+        rsc = s.rasterised.med_err_deg,
         fixed_med = s.fixed_median,
         xa = m_fixed.acc_pi_6,
         xb = m_fixed.acc_pi_18,
@@ -343,7 +367,9 @@ fn findings_markdown(run: &Run, s: &Summary) -> String {
          **Paired** (Acc@π/6 on the same images): udapose alone right on {only_u}, the reference alone on \
          {only_r}; difference {pd:+.3} [{plo:+.3}, {phi:+.3}] (95% paired bootstrap). Against the fixed \
          schedule: the default alone right on {only_d}, the fixed schedule alone on {only_f}; difference \
-         {fd:+.3} [{flo:+.3}, {fhi:+.3}].\n\n\
+         {fd:+.3} [{flo:+.3}, {fhi:+.3}]. Against the same solver rasterised (the solver before the ray \
+         caster): the default alone right on {only_c}, the rasterised one alone on {only_s}; difference \
+         {cd:+.3} [{clo:+.3}, {chi:+.3}].\n\n\
          **End to end** (load + backbone + udapose solver): {end_to_end:.1} ms per image, of which the backbone is \
          {backbone_ms:.1} ms (**{share:.0}%**); by medians, {e2e_median:.1} ms of which the backbone is \
          {backbone_median:.1} ms ({share_median:.0}%).\n\n\
@@ -363,6 +389,11 @@ fn findings_markdown(run: &Run, s: &Summary) -> String {
         fd = paired["udapose_vs_fixed"]["acc_pi_6_difference"].as_f64().unwrap_or(f64::NAN),
         flo = paired["udapose_vs_fixed"]["ci95"][0].as_f64().unwrap_or(f64::NAN),
         fhi = paired["udapose_vs_fixed"]["ci95"][1].as_f64().unwrap_or(f64::NAN),
+        only_c = paired["udapose_vs_rasterised"]["only_udapose_right"],
+        only_s = paired["udapose_vs_rasterised"]["only_reference_right"],
+        cd = paired["udapose_vs_rasterised"]["acc_pi_6_difference"].as_f64().unwrap_or(f64::NAN),
+        clo = paired["udapose_vs_rasterised"]["ci95"][0].as_f64().unwrap_or(f64::NAN),
+        chi = paired["udapose_vs_rasterised"]["ci95"][1].as_f64().unwrap_or(f64::NAN),
         e2e_median = backbone_median + fast_median,
         share_median = pct(backbone_median / (backbone_median + fast_median)),
         speedup = s.reference_ms / s.fast_ms,

@@ -17,13 +17,14 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use super::caster::{CuboidCaster, PoseGradient, Rays};
 use super::{Problem, Scratch};
 use crate::camera::{Pose, rot_x, rot_z};
 use crate::error::Result;
 use crate::raster::{NO_FACE, edge};
 
 /// `∂R/∂a`, `∂R/∂e`, `∂R/∂θ` of `R = Rz(θ)·Rx(e − π/2)·Rz(−a)`.
-fn rotation_derivatives(pose: &Pose) -> [Matrix3<f64>; 3] {
+pub(super) fn rotation_derivatives(pose: &Pose) -> [Matrix3<f64>; 3] {
     // Generators: d/dt Rz(t) = Kz·Rz(t), d/dt Rx(t) = Kx·Rx(t).
     let kz = Matrix3::new(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     let kx = Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 1.0, 0.0);
@@ -32,6 +33,9 @@ fn rotation_derivatives(pose: &Pose) -> [Matrix3<f64>; 3] {
 }
 
 pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: &Pose) -> Result<(f64, [f64; 4])> {
+    if let Some(caster) = &problem.caster {
+        return cast(problem, caster, pose, true);
+    }
     let Scratch { raster, vertex_grad } = scratch;
     let frags = raster.render_faces(problem.mesh, &problem.grid, pose)?;
     let (faces, r, width) = (problem.mesh.faces(), problem.vertices, frags.width);
@@ -46,8 +50,7 @@ pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: 
             continue;
         }
         let idx = faces[f as usize].map(|v| v as usize);
-        let row = &problem.similarity[p * r..(p + 1) * r];
-        let s32 = idx.map(|v| row[v]);
+        let s32 = idx.map(|v| problem.similarity.get(p, v));
         let obj32 = w[0] * s32[0] + w[1] * s32[1] + w[2] * s32[2];
         let clu = problem.clutter[p];
         sum += f64::from(obj32.max(clu) - problem.clutter_pos[p]);
@@ -110,4 +113,31 @@ pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: 
     }
     let scale = -1.0 / problem.pixels as f64;
     Ok((loss, grad.map(|g| g * scale)))
+}
+
+/// The loss (and with `gradient`, its gradient) by ray casting the cuboid: the same sums as the
+/// rasteriser's path, in the same cell order, with the gradient of `caster`'s module docs.
+pub(super) fn cast(problem: &Problem, caster: &CuboidCaster, pose: &Pose, gradient: bool) -> Result<(f64, [f64; 4])> {
+    let camera = &problem.grid;
+    let ([row0, row1], [col0, col1]) = caster.span(camera, pose)?;
+    let rays = Rays::new(camera, pose);
+    let mut sum = 0.0f64;
+    let mut grad = PoseGradient::default();
+    for row in row0..row1 {
+        for col in col0..col1 {
+            let Some(hit) = caster.cast(&rays, col, row) else { continue };
+            let p = row * camera.width + col;
+            let s32 = hit.vertices.map(|v| problem.similarity.get(p, v as usize));
+            let w = hit.weights.map(|w| w as f32);
+            let obj = w[0] * s32[0] + w[1] * s32[1] + w[2] * s32[2];
+            let clu = problem.clutter[p];
+            sum += f64::from(obj.max(clu) - problem.clutter_pos[p]);
+            if gradient && obj > clu {
+                grad.add(&hit, s32.map(f64::from), [col as f64 + 0.5, row as f64 + 0.5], camera, pose.distance);
+            }
+        }
+    }
+    let loss = 1.0 - (problem.base + sum) / problem.pixels as f64;
+    let scale = -1.0 / problem.pixels as f64;
+    Ok((loss, if gradient { grad.finish(pose).map(|g| g * scale) } else { [0.0; 4] }))
 }

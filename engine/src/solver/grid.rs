@@ -41,6 +41,10 @@ pub struct GridRenders {
     vertices: usize,
     poses: Vec<Pose>,
     covered: Vec<Vec<Covered>>,
+    /// The (cell, vertex) pairs the renders read, by vertex: the cells of vertex `v` are
+    /// `cells[starts[v]..starts[v + 1]]`, ascending.
+    starts: Vec<usize>,
+    cells: Vec<u32>,
 }
 
 impl GridRenders {
@@ -57,8 +61,23 @@ impl GridRenders {
                 Ok((pose, covered(&frags, faces).collect()))
             })
             .collect::<Result<_>>()?;
-        let (poses, covered) = renders.into_iter().unzip();
-        Ok(GridRenders { crop: *crop, config: config.clone(), vertices: mesh.vertices().len(), poses, covered })
+        let (poses, covered): (Vec<Pose>, Vec<Vec<Covered>>) = renders.into_iter().unzip();
+        let vertices = mesh.vertices().len();
+        let mut by_vertex: Vec<Vec<u32>> = vec![Vec::new(); vertices];
+        for c in covered.iter().flatten() {
+            for v in c.vertices {
+                by_vertex[v as usize].push(c.pixel);
+            }
+        }
+        let mut starts = vec![0];
+        let mut cells = Vec::new();
+        for mut list in by_vertex {
+            list.sort_unstable();
+            list.dedup();
+            cells.extend(list);
+            starts.push(cells.len());
+        }
+        Ok(GridRenders { crop: *crop, config: config.clone(), vertices, poses, covered, starts, cells })
     }
 
     /// Whether these renders are the grid of `config` on `crop` (the optimiser and `k` may differ).
@@ -74,6 +93,13 @@ impl GridRenders {
         if !self.fits(problem.crop_camera(), &self.config) || problem.vertices != self.vertices {
             return Err(EngineError::InvalidInput("the grid renders are of another mesh or crop".into()));
         }
+        // Every entry the renders read, vertex by vertex: one vertex feature stays in L1 while
+        // the cells' features stream past, instead of both fetched per entry in render order.
+        (0..self.vertices).into_par_iter().with_min_len(64).for_each(|v| {
+            for &p in &self.cells[self.starts[v]..self.starts[v + 1]] {
+                problem.similarity.get(p as usize, v);
+            }
+        });
         Ok(self
             .poses
             .par_iter()

@@ -27,9 +27,11 @@
 //! ([`AdamConfig::default`], [`Prune`]): about a third of the evaluations, the same answers
 //! (`reports/solver.md`). [`AdamConfig::fixed`] with no pruning is the fixed schedule.
 
+mod caster;
 mod gradient;
 mod grid;
 mod optimise;
+mod similarity;
 
 use std::f64::consts::{PI, TAU};
 
@@ -41,7 +43,9 @@ use crate::error::{EngineError, Result};
 use crate::mesh::Mesh;
 use crate::metrics::rotation_error;
 use crate::raster::Rasterizer;
+use similarity::Similarity;
 
+pub use caster::CuboidCaster;
 pub use grid::GridRenders;
 pub use optimise::{AdamConfig, Optimizer, PatternSearchConfig, Prune};
 
@@ -72,6 +76,14 @@ pub struct SolverConfig {
     /// written before this field existed).
     #[serde(default)]
     pub prune: Prune,
+    /// Evaluate poses by ray casting where the mesh is a cuboid mesh ([`CuboidCaster`]); false
+    /// rasterises every pose, as the solver did before the caster (kept for comparison).
+    #[serde(default = "ray_cast_default")]
+    pub ray_cast: bool,
+}
+
+fn ray_cast_default() -> bool {
+    true
 }
 
 impl Default for SolverConfig {
@@ -87,6 +99,7 @@ impl Default for SolverConfig {
             optimizer: Optimizer::default(),
             // Measured with the optimiser's plateau stopping (see `AdamConfig::default`).
             prune: Prune { after: 15, margin: 0.02 },
+            ray_cast: true,
         }
     }
 }
@@ -231,8 +244,8 @@ pub struct Scratch {
     vertex_grad: Vec<[f64; 3]>,
 }
 
-/// One image prepared for pose evaluation: `S = C·F` (stored pixel-major, `P × R`, so the three
-/// vertices of a face, which are neighbours in the mesh, share cache lines) and the clutter map.
+/// One image prepared for pose evaluation: `S = C·F` (each entry computed when first read, see
+/// [`similarity`]) and the clutter map.
 #[derive(Debug)]
 pub struct Problem<'a> {
     mesh: &'a Mesh,
@@ -240,21 +253,33 @@ pub struct Problem<'a> {
     grid: Camera,
     vertices: usize,
     pixels: usize,
-    similarity: Vec<f32>,
+    similarity: Similarity<'a>,
     clutter: Vec<f32>,
     /// `max(0, clu(p))`: what an uncovered pixel contributes to `mean max(obj, clu)`.
     clutter_pos: Vec<f32>,
     /// `Σ_p max(0, clu(p)) − clu(p)`: the loss sum with no pixel covered.
     base: f64,
+    /// The cuboid's ray caster where the mesh is one (evaluations then skip the rasteriser).
+    caster: Option<CuboidCaster>,
 }
-
-/// Pixels per parallel task of the similarity GEMM.
-const GEMM_PIXELS_PER_TASK: usize = 128;
 
 impl<'a> Problem<'a> {
     /// Prepares an image whose crop camera is `crop` (`Camera::for_crop(H, W)`); `features`
-    /// must be on `crop.at_stride(stride)`'s grid.
+    /// must be on `crop.at_stride(stride)`'s grid. Poses are evaluated by ray casting when the
+    /// mesh is a cuboid mesh ([`CuboidCaster::detect`]), by the rasteriser otherwise.
     pub fn new(model: &NeuralMeshView<'a>, features: &FeatureMap, crop: &Camera, stride: usize) -> Result<Self> {
+        Problem::with_caster(model, features, crop, stride, CuboidCaster::detect(model.mesh))
+    }
+
+    /// [`Problem::new`] with the caster already detected (once per solver, not per image):
+    /// `caster` must be [`CuboidCaster::detect`] of `model`'s mesh.
+    pub fn with_caster(
+        model: &NeuralMeshView<'a>,
+        features: &FeatureMap,
+        crop: &Camera,
+        stride: usize,
+        caster: Option<CuboidCaster>,
+    ) -> Result<Self> {
         let grid = crop.at_stride(stride)?;
         if grid.width == 0 || grid.height == 0 {
             return Err(EngineError::EmptyImage { width: grid.width, height: grid.height });
@@ -271,42 +296,13 @@ impl<'a> Problem<'a> {
                 features.dim, model.dim
             )));
         }
-        let (d, r, p) = (model.dim, model.mesh.vertices().len(), grid.width * grid.height);
-        let mut similarity = vec![0.0f32; p * r];
-        let tasks = similarity.par_chunks_mut(GEMM_PIXELS_PER_TASK * r);
-        tasks.enumerate().for_each(|(t, out)| {
-            let p0 = t * GEMM_PIXELS_PER_TASK;
-            let rows = out.len() / r;
-            // out[p, v] = Σ_d F[d, p0 + p]·C[v, d]: A = Fᵀ (strides 1, P), B = Cᵀ (strides 1, D).
-            // SAFETY: A spans F[p0 + i + j·P] for i < rows ≤ P − p0, j < D, inside the checked
-            // D·P values; B spans C[k + j·D] for k < D, j < R, inside R·D; C spans out[i·R + j]
-            // for i < rows, j < R, which is out's length.
-            unsafe {
-                matrixmultiply::sgemm(
-                    rows,
-                    d,
-                    r,
-                    1.0,
-                    features.data.as_ptr().add(p0),
-                    1,
-                    p as isize,
-                    model.vertex_features.as_ptr(),
-                    1,
-                    d as isize,
-                    0.0,
-                    out.as_mut_ptr(),
-                    r as isize,
-                    1,
-                );
-            }
-        });
+        let r = model.mesh.vertices().len();
+        let (d, p) = (model.dim, grid.width * grid.height);
+        let similarity = Similarity::new(features.data, p, model.vertex_features, d);
         let clutter: Vec<f32> = (0..p)
             .map(|px| {
-                model
-                    .clutter
-                    .chunks_exact(d)
-                    .map(|b| b.iter().enumerate().map(|(k, &b)| b * features.data[k * p + px]).sum::<f32>())
-                    .fold(f32::NEG_INFINITY, f32::max)
+                let f = similarity.feature(px);
+                model.clutter.chunks_exact(d).map(|b| similarity.dot(b, f)).fold(f32::NEG_INFINITY, f32::max)
             })
             .collect();
         let clutter_pos: Vec<f32> = clutter.iter().map(|&c| c.max(0.0)).collect();
@@ -321,7 +317,19 @@ impl<'a> Problem<'a> {
             clutter,
             clutter_pos,
             base,
+            caster,
         })
+    }
+
+    /// The same problem evaluated by the rasteriser even where the mesh is a cuboid: today's
+    /// renderer, kept for comparison (the two agree to rounding).
+    pub fn rasterized(self) -> Self {
+        Problem { caster: None, ..self }
+    }
+
+    /// Whether poses are evaluated by ray casting.
+    pub fn is_ray_cast(&self) -> bool {
+        self.caster.is_some()
     }
 
     pub fn mesh(&self) -> &'a Mesh {
@@ -338,9 +346,9 @@ impl<'a> Problem<'a> {
         &self.grid
     }
 
-    /// `S = C·F`, pixel-major: `S[p·R + v]`.
-    pub fn similarity(&self) -> &[f32] {
-        &self.similarity
+    /// `S[v, p] = C_v·F(p)` (computed now if no pose has read it yet).
+    pub fn similarity(&self, pixel: usize, vertex: usize) -> f32 {
+        self.similarity.get(pixel, vertex)
     }
 
     /// `clu(p) = max_n β_n·F(p)`, row-major over the grid.
@@ -350,6 +358,14 @@ impl<'a> Problem<'a> {
 
     /// `L(pose)`.
     pub fn loss(&self, scratch: &mut Scratch, pose: &Pose) -> Result<f64> {
+        match &self.caster {
+            Some(caster) => gradient::cast(self, caster, pose, false).map(|(loss, _)| loss),
+            None => self.rendered_loss(scratch, pose),
+        }
+    }
+
+    /// `L(pose)` from the rasteriser.
+    fn rendered_loss(&self, scratch: &mut Scratch, pose: &Pose) -> Result<f64> {
         let frags = scratch.raster.render_faces(self.mesh, &self.grid, pose)?;
         Ok(self.covered_loss(grid::covered(&frags, self.mesh.faces())))
     }
@@ -357,12 +373,11 @@ impl<'a> Problem<'a> {
     /// `L` of a render given as the cells it covers, in raster order (the one summation both
     /// [`Problem::loss`] and [`GridRenders::losses`] use, so the two agree bit for bit).
     fn covered_loss(&self, covered: impl Iterator<Item = grid::Covered>) -> f64 {
-        let r = self.vertices;
         let mut sum = 0.0f64;
         for grid::Covered { pixel, vertices: [a, b, c], weights: w } in covered {
             let p = pixel as usize;
-            let row = &self.similarity[p * r..(p + 1) * r];
-            let obj = w[0] * row[a as usize] + w[1] * row[b as usize] + w[2] * row[c as usize];
+            let sim = |v: u32| self.similarity.get(p, v as usize);
+            let obj = w[0] * sim(a) + w[1] * sim(b) + w[2] * sim(c);
             sum += f64::from(obj.max(self.clutter[p]) - self.clutter_pos[p]);
         }
         1.0 - (self.base + sum) / self.pixels as f64
@@ -448,7 +463,7 @@ pub fn grid_losses(problem: &Problem, config: &SolverConfig) -> Result<Vec<Score
         .map_init(Scratch::default, |scratch, [a, e, t]| {
             let distance = fit_distance(problem.mesh.vertices(), [a, e, t], &problem.crop, config.fill)?;
             let pose = Pose::new(a, e, t, distance);
-            Ok(ScoredPose { pose, loss: problem.loss(scratch, &pose)? })
+            Ok(ScoredPose { pose, loss: problem.rendered_loss(scratch, &pose)? })
         })
         .collect()
 }
@@ -517,7 +532,8 @@ pub fn render_and_compare(
     config: &SolverConfig,
 ) -> Result<Estimate> {
     config.validate()?;
-    let problem = Problem::new(model, features, crop, config.stride)?;
+    let caster = if config.ray_cast { CuboidCaster::detect(model.mesh) } else { None };
+    let problem = Problem::with_caster(model, features, crop, config.stride, caster)?;
     solve(&problem, config)
 }
 
