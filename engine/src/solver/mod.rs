@@ -23,9 +23,9 @@
 //! in 1.8× less time per image, and more accurate than a derivative-free pattern search on the
 //! exact loss (also available, [`Optimizer::PatternSearch`]); numbers on [`Optimizer::default`]
 //! and in `reports/solver-synthetic.md`. Each learning rate's phase ends once the loss stops
-//! falling, and after 15 steps the hypotheses trailing the leader by more than 0.02 stop
-//! ([`AdamConfig::default`], [`Prune`]): about a third of the evaluations, the same answers
-//! (`reports/solver.md`). [`AdamConfig::fixed`] with no pruning is the fixed schedule.
+//! falling, and after 6 steps the hypotheses trailing the leader by more than 0.02 stop
+//! ([`AdamConfig::default`], [`Prune`]): about a ninth of the evaluations, the same answers
+//! on source images (`reports/solver.md`). [`AdamConfig::fixed`] with no pruning is the fixed schedule.
 
 mod caster;
 mod gradient;
@@ -98,7 +98,7 @@ impl Default for SolverConfig {
             stride: FEATURE_STRIDE,
             optimizer: Optimizer::default(),
             // Measured with the optimiser's plateau stopping (see `AdamConfig::default`).
-            prune: Prune { after: 15, margin: 0.02 },
+            prune: Prune { after: 6, margin: 0.02 },
             ray_cast: true,
         }
     }

@@ -103,14 +103,15 @@ pub struct AdamConfig {
 }
 
 impl Default for AdamConfig {
-    /// [`AdamConfig::fixed`] with plateau stopping after 20 steps without a 1e-4 gain. Chosen
-    /// with [`super::Prune`]'s 15 steps and 0.02 by `bench/examples/refine_variants.rs` on
-    /// adapt/val splits of `models/car` (`reports/refine-variants.md`: source 300 images,
-    /// combined and occ-l2 200 each): the same Acc@π/6 as the fixed 150 steps on every image, in
-    /// 124–152 evaluations per image instead of 453; patience 15 changed 2 of 200 occ-l2
-    /// images. The paired check on 900 source images is in `reports/solver.md`.
+    /// [`AdamConfig::fixed`] with plateau stopping after 8 steps without a 2e-4 gain. Chosen
+    /// with [`super::Prune`]'s 6 steps and 0.02 by `bench/examples/refine_variants.rs` on
+    /// adapt/val splits of `models/car` (`reports/refine-variants.md`, second table: source 600
+    /// images, combined and occ-l2 300 each): the fixed 150 steps' Acc@π/6 on source (600/600
+    /// verdicts alike) in 51 evaluations per image instead of 453 (128 with the earlier 20 steps
+    /// and pruning after 15); −1 image on combined, +3 on occ-l2. Once an evaluation cost 20 µs
+    /// instead of 68 (the ray caster), the evaluation count was most of the solver's time.
     fn default() -> Self {
-        AdamConfig { patience: 20, min_improvement: 1e-4, ..AdamConfig::fixed() }
+        AdamConfig { patience: 8, min_improvement: 2e-4, ..AdamConfig::fixed() }
     }
 }
 
