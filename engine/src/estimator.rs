@@ -117,8 +117,10 @@ impl PoseSolver {
 
     /// One image prepared for pose evaluation (`S = C·F` and the clutter map).
     pub fn problem<'a>(&'a self, features: &'a Features) -> Result<Problem<'a>> {
+        // Checked by `from_host`.
+        let model = NeuralMeshView::checked(&self.mesh, &self.vertex_features, &self.clutter, self.dim);
         Problem::with_caster(
-            &self.mesh_model()?,
+            &model,
             &features.map()?,
             &self.camera,
             self.config.stride,

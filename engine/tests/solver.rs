@@ -4,10 +4,11 @@
 use udapose_engine::camera::fit_distance;
 use udapose_engine::raster::NO_FACE;
 use udapose_engine::solver::{
-    AdamConfig, FeatureMap, GridRenders, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, Prune, ScoredPose,
-    Scratch, SolverConfig, grid_losses, grid_poses, multi_pose_init, render_and_compare, select_distant, solve,
+    AdamConfig, CuboidCaster, FeatureMap, GridRenders, NeuralMeshView, Optimizer, PatternSearchConfig, Problem, Prune,
+    ScoredPose, Scratch, SolverConfig, grid_losses, grid_poses, multi_pose_init, render_and_compare, select_distant,
+    solve,
 };
-use udapose_engine::{Camera, EngineError, Pose, Rasterizer, View, rotation_error};
+use udapose_engine::{Camera, Cuboid, EngineError, Mesh, Pose, Rasterizer, View, rotation_error};
 use udapose_testkit::synthetic::{
     ImageSettings, SplitMix64, SyntheticImage, SyntheticModel, render_features, source_pose,
 };
@@ -455,9 +456,10 @@ fn grid_renders_give_the_per_image_grid_losses_bit_for_bit() {
     let renders = GridRenders::new(&m.mesh, &crop(), &config).unwrap();
     for seed in [13, 14, 15] {
         let img = random_image(&m, seed);
-        let prob = problem(&m, &img);
-        let rendered = grid_losses(&prob, &config).unwrap();
-        let gathered = renders.losses(&prob).unwrap();
+        // Two problems: S computed entry by entry as the renders read it, and prefilled vertex
+        // by vertex by the cached renders — the same bits either way.
+        let rendered = grid_losses(&problem(&m, &img), &config).unwrap();
+        let gathered = renders.losses(&problem(&m, &img)).unwrap();
         assert_eq!(rendered.len(), 144);
         for (r, g) in rendered.iter().zip(&gathered) {
             assert_eq!(r.pose, g.pose);
@@ -471,4 +473,68 @@ fn grid_renders_give_the_per_image_grid_losses_bit_for_bit() {
     let other = GridRenders::new(&m.mesh, &Camera::for_crop(64, 160).unwrap(), &config).unwrap();
     let img = random_image(&m, 16);
     assert!(invalid(other.losses(&problem(&m, &img))));
+}
+
+#[test]
+fn the_ray_caster_is_used_only_for_exact_cuboid_meshes() {
+    for (dims, target) in [([0.43, 1.0, 0.28], 1000), ([1.0, 1.0, 1.0], 200), ([2.0, 0.5, 0.1], 60)] {
+        let mesh = Cuboid::from_dimensions(dims).unwrap().mesh(target);
+        assert!(CuboidCaster::detect(&mesh).is_some(), "{dims:?} / {target}");
+    }
+    let mesh = model(30).mesh;
+    assert!(CuboidCaster::detect(&mesh).is_some());
+    // Any other mesh is rasterised: a moved vertex, reordered faces, a non-box shape.
+    let mut moved = mesh.vertices().to_vec();
+    moved[7][2] += 1e-3;
+    assert!(CuboidCaster::detect(&Mesh::new(moved, mesh.faces().to_vec()).unwrap()).is_none());
+    let mut faces = mesh.faces().to_vec();
+    faces.swap(0, 1);
+    assert!(CuboidCaster::detect(&Mesh::new(mesh.vertices().to_vec(), faces).unwrap()).is_none());
+    let tetra = Mesh::new(
+        vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+    )
+    .unwrap();
+    assert!(CuboidCaster::detect(&tetra).is_none());
+}
+
+#[test]
+fn ray_casting_gives_the_rasterisers_loss_gradient_and_estimate() {
+    let m = model(31);
+    for seed in [32, 33, 34] {
+        let img = random_image(&m, seed);
+        let cast = problem(&m, &img);
+        let raster = problem(&m, &img).rasterized();
+        assert!(cast.is_ray_cast() && !raster.is_ray_cast());
+        let (mut sc, mut sr) = (Scratch::default(), Scratch::default());
+        let mut rng = SplitMix64::new(seed + 100);
+        for k in 0..40 {
+            let base = if k == 0 { img.pose } else { source_pose(&mut rng, &m.mesh, &crop()).unwrap() };
+            // From near the fit distance to well inside and outside it.
+            let pose = Pose { distance: base.distance * rng.range(0.7, 1.5), ..base };
+            let (lc, gc) = cast.loss_and_gradient(&mut sc, &pose).unwrap();
+            let (lr, gr) = raster.loss_and_gradient(&mut sr, &pose).unwrap();
+            assert!((lc - lr).abs() < 1e-6, "seed {seed}, pose {k}: loss {lc} cast vs {lr} rasterised");
+            assert_eq!(cast.loss(&mut sc, &pose).unwrap().to_bits(), lc.to_bits());
+            let scale = gr.iter().fold(1e-3f64, |m, g| m.max(g.abs()));
+            for i in 0..4 {
+                assert!(
+                    (gc[i] - gr[i]).abs() < 1e-6 * scale,
+                    "seed {seed}, pose {k}, coordinate {i}: {gc:?} vs {gr:?}"
+                );
+            }
+        }
+        // The whole solve: the same answer to well under a degree.
+        let fast =
+            render_and_compare(&m.model().unwrap(), &img.feature_map().unwrap(), &crop(), &SolverConfig::default())
+                .unwrap();
+        let slow_config = SolverConfig { ray_cast: false, ..SolverConfig::default() };
+        let slow = render_and_compare(&m.model().unwrap(), &img.feature_map().unwrap(), &crop(), &slow_config).unwrap();
+        let apart = rotation_error(&fast.pose.rotation(), &slow.pose.rotation()).to_degrees();
+        assert!(apart < 0.5, "seed {seed}: the two solvers' answers are {apart}° apart");
+    }
+    // Configurations written before the switch existed ray cast.
+    let mut json = serde_json::to_value(SolverConfig::default()).unwrap();
+    json.as_object_mut().unwrap().remove("ray_cast");
+    assert!(serde_json::from_value::<SolverConfig>(json).unwrap().ray_cast);
 }

@@ -129,28 +129,53 @@ impl CuboidCaster {
         Some(CuboidCaster { min, max, counts, first })
     }
 
-    /// The cells `(rows, cols)` whose centres can see the box: those inside the bounds of its
-    /// projected corners (all of them when a corner is not in front of the camera).
-    pub(super) fn span(&self, camera: &Camera, pose: &Pose) -> Result<([usize; 2], [usize; 2])> {
+    /// The cells whose centres can see the box, as `[row, first col, end col)` runs: per row,
+    /// the cells inside the box's silhouette, the convex polygon its projected corners span,
+    /// whose edges are box edges (a convex solid's outline is made of its own edges); widened
+    /// by a hair so that rounding never drops a cell the ray would hit. Every cell when a
+    /// corner is not in front of the camera.
+    pub(super) fn runs(&self, camera: &Camera, pose: &Pose, out: &mut Vec<[usize; 3]>) -> Result<()> {
+        out.clear();
         let view = View::new(camera, pose)?;
-        let all = ([0, camera.height], [0, camera.width]);
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for corner in 0..8 {
-            let x = std::array::from_fn(|k| if corner >> k & 1 == 0 { self.min[k] } else { self.max[k] });
+        let mut corners = [[0.0f64; 2]; 8];
+        for (i, c) in corners.iter_mut().enumerate() {
+            let x = std::array::from_fn(|k| if i >> k & 1 == 0 { self.min[k] } else { self.max[k] });
             let [col, row, depth] = view.project(x);
             if depth <= 0.0 {
-                return Ok(all);
+                out.extend((0..camera.height).map(|r| [r, 0, camera.width]));
+                return Ok(());
             }
-            (lo[0], hi[0]) = (lo[0].min(row), hi[0].max(row));
-            (lo[1], hi[1]) = (lo[1].min(col), hi[1].max(col));
+            *c = [col, row];
         }
-        // Cell i's centre is i + ½: the first centre at or above lo, the last at or below hi.
-        let range = |lo: f64, hi: f64, n: usize| {
-            let first = (lo - 0.5).ceil().clamp(0.0, n as f64) as usize;
-            let end = ((hi - 0.5).floor() + 1.0).clamp(0.0, n as f64) as usize;
-            [first, end.max(first)]
-        };
-        Ok((range(lo[0], hi[0], camera.height), range(lo[1], hi[1], camera.width)))
+        const HAIR: f64 = 1e-6;
+        let width = camera.width as f64;
+        for row in 0..camera.height {
+            let y = row as f64 + 0.5;
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            // The 12 box edges: corners differing in one coordinate bit.
+            for a in 0..8 {
+                for b in (0..3).map(|k| a | 1 << k).filter(|&b| b != a) {
+                    let ([xa, ya], [xb, yb]) = (corners[a], corners[b]);
+                    if (ya - y) * (yb - y) > 0.0 {
+                        continue;
+                    }
+                    let (x0, x1) = if ya == yb {
+                        (xa.min(xb), xa.max(xb))
+                    } else {
+                        let x = xa + (y - ya) * (xb - xa) / (yb - ya);
+                        (x, x)
+                    };
+                    (lo, hi) = (lo.min(x0), hi.max(x1));
+                }
+            }
+            // Cell c's centre is c + ½: the first centre at or right of lo, the last at or left of hi.
+            let first = (lo - 0.5 - HAIR).ceil().clamp(0.0, width) as usize;
+            let end = ((hi - 0.5 + HAIR).floor() + 1.0).clamp(0.0, width) as usize;
+            if lo <= hi && end > first {
+                out.push([row, first, end]);
+            }
+        }
+        Ok(())
     }
 
     /// Where the ray through cell `(col, row)`'s centre enters the box, if it does in front of
@@ -185,7 +210,9 @@ impl CuboidCaster {
         let cell = |k: usize, n: usize| {
             let per_unit = (n - 1) as f64 / (self.max[k] - self.min[k]);
             let f = (o[k] + t_in * dir[k] - self.min[k]) * per_unit;
-            let i = (f.floor().max(0.0) as usize).min(n - 2);
+            // `as` truncates and saturates: floor for f ≥ 0, and 0 for an entry a rounding error
+            // outside the box (no libm call in the hot loop).
+            let i = (f as usize).min(n - 2);
             (i, f - i as f64, per_unit)
         };
         let ((i, fu, su), (j, fv, sv)) = (cell(u, nu), cell(v, nv));

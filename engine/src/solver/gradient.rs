@@ -119,11 +119,12 @@ pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: 
 /// rasteriser's path, in the same cell order, with the gradient of `caster`'s module docs.
 pub(super) fn cast(problem: &Problem, caster: &CuboidCaster, pose: &Pose, gradient: bool) -> Result<(f64, [f64; 4])> {
     let camera = &problem.grid;
-    let ([row0, row1], [col0, col1]) = caster.span(camera, pose)?;
+    let mut runs = Vec::with_capacity(camera.height);
+    caster.runs(camera, pose, &mut runs)?;
     let rays = Rays::new(camera, pose);
     let mut sum = 0.0f64;
     let mut grad = PoseGradient::default();
-    for row in row0..row1 {
+    for [row, col0, col1] in runs {
         for col in col0..col1 {
             let Some(hit) = caster.cast(&rays, col, row) else { continue };
             let p = row * camera.width + col;

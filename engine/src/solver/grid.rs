@@ -96,9 +96,7 @@ impl GridRenders {
         // Every entry the renders read, vertex by vertex: one vertex feature stays in L1 while
         // the cells' features stream past, instead of both fetched per entry in render order.
         (0..self.vertices).into_par_iter().with_min_len(64).for_each(|v| {
-            for &p in &self.cells[self.starts[v]..self.starts[v + 1]] {
-                problem.similarity.get(p as usize, v);
-            }
+            problem.similarity.fill(v, &self.cells[self.starts[v]..self.starts[v + 1]]);
         });
         Ok(self
             .poses

@@ -220,6 +220,12 @@ impl<'a> NeuralMeshView<'a> {
         Ok(NeuralMeshView { mesh, vertex_features, clutter, dim })
     }
 
+    /// A view of parts [`NeuralMeshView::new`] has already checked (a solver's, per image:
+    /// checking 135k vertex feature values again cost more than preparing the image).
+    pub(crate) fn checked(mesh: &'a Mesh, vertex_features: &'a [f32], clutter: &'a [f32], dim: usize) -> Self {
+        NeuralMeshView { mesh, vertex_features, clutter, dim }
+    }
+
     pub fn mesh(&self) -> &'a Mesh {
         self.mesh
     }

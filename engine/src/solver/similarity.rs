@@ -13,6 +13,9 @@ use std::sync::atomic::{AtomicU32, Ordering};
 /// An entry not computed yet (a dot product of finite unit vectors is never NaN).
 const PENDING: u32 = f32::NAN.to_bits();
 
+/// Two dot products with a shared second vector.
+type Dot2 = fn(&[f32], &[f32], &[f32]) -> [f32; 2];
+
 #[derive(Debug)]
 pub(super) struct Similarity<'a> {
     /// The image's features transposed to `P × D`, one pixel's vector contiguous.
@@ -22,6 +25,8 @@ pub(super) struct Similarity<'a> {
     vertices: usize,
     values: Vec<AtomicU32>,
     dot: fn(&[f32], &[f32]) -> f32,
+    /// Two of `dot` sharing their second vector.
+    dot2: Dot2,
 }
 
 impl<'a> Similarity<'a> {
@@ -41,6 +46,7 @@ impl<'a> Similarity<'a> {
             vertices,
             values: (0..pixels * vertices).map(|_| AtomicU32::new(PENDING)).collect(),
             dot: dot_fn(),
+            dot2: dot2_fn(),
         }
     }
 
@@ -60,6 +66,23 @@ impl<'a> Similarity<'a> {
         let x = (self.dot)(self.feature(p), &self.vertex_features[v * self.dim..(v + 1) * self.dim]);
         cell.store(x.to_bits(), Ordering::Relaxed);
         x
+    }
+
+    /// Computes `S[v, p]` for every cell `p` of `cells` (a vertex's cells, in one go: the
+    /// vertex's feature is loaded once per two cells). The values are bit for bit those
+    /// [`Similarity::get`] computes.
+    pub fn fill(&self, v: usize, cells: &[u32]) {
+        let c = &self.vertex_features[v * self.dim..(v + 1) * self.dim];
+        let store = |p: u32, x: f32| self.values[p as usize * self.vertices + v].store(x.to_bits(), Ordering::Relaxed);
+        let pairs = cells.chunks_exact(2);
+        if let [p] = pairs.remainder() {
+            store(*p, (self.dot)(self.feature(*p as usize), c));
+        }
+        for pair in pairs {
+            let [x, y] = (self.dot2)(self.feature(pair[0] as usize), self.feature(pair[1] as usize), c);
+            store(pair[0], x);
+            store(pair[1], y);
+        }
     }
 
     /// The dot product this machine uses (the same for every entry).
@@ -104,6 +127,59 @@ fn dot_avx2_fma(a: &[f32], b: &[f32]) -> f32 {
     unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), sum) };
     let head = ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]));
     head + dot_portable(&a[body..n], &b[body..n])
+}
+
+fn dot2_portable(a0: &[f32], a1: &[f32], b: &[f32]) -> [f32; 2] {
+    [dot_portable(a0, b), dot_portable(a1, b)]
+}
+
+/// [`dot_avx2_fma`] of `a0` and of `a1` with `b`, the same operations per pair in the same
+/// order (so the same bits), with `b`'s loads shared.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn dot2_avx2_fma(a0: &[f32], a1: &[f32], b: &[f32]) -> [f32; 2] {
+    use std::arch::x86_64::*;
+    let n = a0.len().min(a1.len()).min(b.len());
+    if n != a0.len() || n != a1.len() {
+        return [dot_avx2_fma(a0, b), dot_avx2_fma(a1, b)];
+    }
+    let body = n - n % 32;
+    let mut acc0 = [_mm256_setzero_ps(); 4];
+    let mut acc1 = [_mm256_setzero_ps(); 4];
+    let mut i = 0;
+    while i < body {
+        for k in 0..4 {
+            // SAFETY: i + 8k + 8 <= body <= every length.
+            let (x0, x1, y) = unsafe {
+                (
+                    _mm256_loadu_ps(a0.as_ptr().add(i + 8 * k)),
+                    _mm256_loadu_ps(a1.as_ptr().add(i + 8 * k)),
+                    _mm256_loadu_ps(b.as_ptr().add(i + 8 * k)),
+                )
+            };
+            acc0[k] = _mm256_fmadd_ps(x0, y, acc0[k]);
+            acc1[k] = _mm256_fmadd_ps(x1, y, acc1[k]);
+        }
+        i += 32;
+    }
+    let finish = |acc: [__m256; 4], a: &[f32]| {
+        let sum = _mm256_add_ps(_mm256_add_ps(acc[0], acc[1]), _mm256_add_ps(acc[2], acc[3]));
+        let mut lanes = [0.0f32; 8];
+        // SAFETY: lanes holds 8 floats.
+        unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), sum) };
+        let head = ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5])) + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]));
+        head + dot_portable(&a[body..n], &b[body..n])
+    };
+    [finish(acc0, a0), finish(acc1, a1)]
+}
+
+fn dot2_fn() -> Dot2 {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+        // SAFETY: the features the function is compiled for were just detected.
+        return |a0, a1, b| unsafe { dot2_avx2_fma(a0, a1, b) };
+    }
+    dot2_portable
 }
 
 /// AVX2 + FMA where the CPU has them (detected once per problem), portable otherwise.
