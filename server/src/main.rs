@@ -103,7 +103,8 @@ struct Args {
     /// at most 15 crops, the range where libtorch gives every crop the same features).
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=256))]
     max_batch: u32,
-    /// How long the first request of a batch waits for others, in milliseconds.
+    /// How long the first request of a batch waits for others, in milliseconds, when others are
+    /// already queued behind it (a lone request goes at once).
     #[arg(long, default_value_t = 5)]
     max_delay_ms: u64,
     /// Requests that may wait per category; beyond it: UNAVAILABLE / 503 at once.
