@@ -504,7 +504,7 @@ fn ray_casting_gives_the_rasterisers_loss_gradient_and_estimate() {
     for seed in [32, 33, 34] {
         let img = random_image(&m, seed);
         let cast = problem(&m, &img);
-        let raster = problem(&m, &img).rasterized();
+        let raster = Problem::with_caster(&m.model().unwrap(), &img.feature_map().unwrap(), &crop(), 8, None).unwrap();
         assert!(cast.is_ray_cast() && !raster.is_ray_cast());
         let (mut sc, mut sr) = (Scratch::default(), Scratch::default());
         let mut rng = SplitMix64::new(seed + 100);

@@ -34,9 +34,9 @@ pub(super) fn rotation_derivatives(pose: &Pose) -> [Matrix3<f64>; 3] {
 
 pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: &Pose) -> Result<(f64, [f64; 4])> {
     if let Some(caster) = &problem.caster {
-        return cast(problem, caster, pose, true);
+        return cast(problem, caster, &mut scratch.runs, pose, true);
     }
-    let Scratch { raster, vertex_grad } = scratch;
+    let Scratch { raster, vertex_grad, .. } = scratch;
     let frags = raster.render_faces(problem.mesh, &problem.grid, pose)?;
     let (faces, r, width) = (problem.mesh.faces(), problem.vertices, frags.width);
     let projected = frags.projected;
@@ -117,14 +117,19 @@ pub(super) fn loss_and_gradient(problem: &Problem, scratch: &mut Scratch, pose: 
 
 /// The loss (and with `gradient`, its gradient) by ray casting the cuboid: the same sums as the
 /// rasteriser's path, in the same cell order, with the gradient of `caster`'s module docs.
-pub(super) fn cast(problem: &Problem, caster: &CuboidCaster, pose: &Pose, gradient: bool) -> Result<(f64, [f64; 4])> {
+pub(super) fn cast(
+    problem: &Problem,
+    caster: &CuboidCaster,
+    runs: &mut Vec<[usize; 3]>,
+    pose: &Pose,
+    gradient: bool,
+) -> Result<(f64, [f64; 4])> {
     let camera = &problem.grid;
-    let mut runs = Vec::with_capacity(camera.height);
-    caster.runs(camera, pose, &mut runs)?;
+    caster.runs(camera, pose, runs)?;
     let rays = Rays::new(camera, pose);
     let mut sum = 0.0f64;
     let mut grad = PoseGradient::default();
-    for [row, col0, col1] in runs {
+    for &[row, col0, col1] in runs.iter() {
         for col in col0..col1 {
             let Some(hit) = caster.cast(&rays, col, row) else { continue };
             let p = row * camera.width + col;

@@ -243,11 +243,13 @@ impl<'a> NeuralMeshView<'a> {
     }
 }
 
-/// Per-thread buffers of pose evaluation: the rasteriser and the per-vertex gradient.
+/// Per-thread buffers of pose evaluation: the rasteriser and the per-vertex gradient, or the
+/// ray caster's runs of cells.
 #[derive(Debug, Default)]
 pub struct Scratch {
     raster: Rasterizer,
     vertex_grad: Vec<[f64; 3]>,
+    runs: Vec<[usize; 3]>,
 }
 
 /// One image prepared for pose evaluation: `S = C·F` (each entry computed when first read, see
@@ -327,12 +329,6 @@ impl<'a> Problem<'a> {
         })
     }
 
-    /// The same problem evaluated by the rasteriser even where the mesh is a cuboid: today's
-    /// renderer, kept for comparison (the two agree to rounding).
-    pub fn rasterized(self) -> Self {
-        Problem { caster: None, ..self }
-    }
-
     /// Whether poses are evaluated by ray casting.
     pub fn is_ray_cast(&self) -> bool {
         self.caster.is_some()
@@ -365,7 +361,7 @@ impl<'a> Problem<'a> {
     /// `L(pose)`.
     pub fn loss(&self, scratch: &mut Scratch, pose: &Pose) -> Result<f64> {
         match &self.caster {
-            Some(caster) => gradient::cast(self, caster, pose, false).map(|(loss, _)| loss),
+            Some(caster) => gradient::cast(self, caster, &mut scratch.runs, pose, false).map(|(loss, _)| loss),
             None => self.rendered_loss(scratch, pose),
         }
     }
