@@ -122,8 +122,16 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
         "UNIMPLEMENTED",
         "GET is not allowed",
     );
-    // A deadline shorter than the batching delay (5 ms) passes before the estimate starts.
-    expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
+    // A 1 ms deadline passes in the queue behind a 16-box request (hundreds of ms of work):
+    // the request is refused, not computed.
+    let busy = "/v1/pose/car?".to_string() + &["bbox=0,0,160,64"; 16].join("&");
+    std::thread::scope(|s| {
+        let (post, good, busy) = (&post, &good, &busy);
+        let busy = s.spawn(move || post(busy, good));
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
+        assert_eq!(busy.join().unwrap().status, 200);
+    });
     let missing = server.request("POST", "/v1/pose/car", &[], &good);
     assert_eq!(missing.header("www-authenticate"), Some("Bearer realm=\"udapose\""), "401 without a challenge");
     expect(missing, 401, "UNAUTHENTICATED", "missing bearer token");
