@@ -7,7 +7,11 @@ use image::{ImageDecoder, ImageFormat, ImageReader, Limits, error::ImageError};
 
 use udapose_engine::input::{self, Rgb8Image};
 
-use crate::{api::Pixels, error::ApiError};
+use crate::{
+    api::Pixels,
+    error::ApiError,
+    jpeg_dc::{self, DcImage},
+};
 
 /// Bounds on what an image may decode to.
 #[derive(Debug, Clone, Copy)]
@@ -61,8 +65,8 @@ impl Header {
     }
 
     /// Decodes the image to RGB8 at `1 / reduction` of its size (1, 2, 4 or 8, from
-    /// `udapose_engine::input::max_reduction`): a JPEG by its DCT's own scaling (a 4000×3000
-    /// photograph at 1/8 skips most of the inverse DCT), anything else (and JPEGs the scaling
+    /// `udapose_engine::input::max_reduction`): a JPEG by its DCT's own scaling (at 1/8 from
+    /// its DC coefficients alone, [`jpeg_dc`], where the file is baseline), anything else (and JPEGs the scaling
     /// decoder does not take: CMYK, 16-bit, any it refuses) at full size, then by block means
     /// ([`reduced`]). Either way the crop then resamples an image `reduction²` times smaller.
     pub fn decode_for(&self, bytes: &[u8], limits: DecodeLimits, reduction: u32) -> Result<Pixels, ApiError> {
@@ -151,6 +155,13 @@ fn decode_checked(bytes: &[u8], header: Header, limits: DecodeLimits) -> Result<
 /// 8-bit grey, and for files the scaling decoder refuses: the full decoder then decides.
 fn decode_jpeg_reduced(bytes: &[u8], header: Header, limits: DecodeLimits, reduction: u32) -> Option<Pixels> {
     use jpeg_decoder::PixelFormat::{L8, RGB24};
+    let encoded = [header.width as usize, header.height as usize];
+    if reduction == 8
+        && let Some(image) = jpeg_dc::decode(bytes, header.width, header.height)
+    {
+        let DcImage { rgb8, width, height } = image;
+        return Some(Pixels { rgb8, width, height, encoded });
+    }
     let mut decoder = jpeg_decoder::Decoder::new(Cursor::new(bytes));
     decoder.set_max_decoding_buffer_size(usize::try_from(limits.max_alloc).unwrap_or(usize::MAX));
     // JPEG sides are 16-bit, and the header's were checked against `max_side`.
@@ -163,7 +174,6 @@ fn decode_jpeg_reduced(bytes: &[u8], header: Header, limits: DecodeLimits, reduc
     let data = decoder.decode().ok()?;
     let rgb8 = if format == L8 { data.iter().flat_map(|&v| [v, v, v]).collect() } else { data };
     let (width, height) = (usize::from(w), usize::from(h));
-    let encoded = [header.width as usize, header.height as usize];
     (width > 0 && height > 0 && rgb8.len() == width * height * 3).then_some(Pixels { rgb8, width, height, encoded })
 }
 

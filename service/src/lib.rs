@@ -8,6 +8,7 @@ pub mod buffer;
 pub mod decode;
 pub mod error;
 pub mod jobs;
+mod jpeg_dc;
 pub mod metrics;
 pub mod registry;
 pub mod regression;
