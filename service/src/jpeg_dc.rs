@@ -144,7 +144,7 @@ impl Tables {
 }
 
 /// Codes of up to this many bits are decoded by one table lookup.
-const FAST: u32 = 10;
+const FAST: u32 = 12;
 
 /// A canonical Huffman table: a lookup for short codes, JPEG's MAXCODE/VALPTR for the rest.
 struct Huffman {
@@ -199,6 +199,16 @@ impl Huffman {
         }
     }
 
+    /// The next DC difference: its size category's code, then its value bits.
+    fn dc_difference(&self, bits: &mut Bits) -> Option<i32> {
+        let size = u32::from(self.symbol(bits)?);
+        if size > 11 {
+            return None;
+        }
+        // `symbol` refilled to ≥ 57 bits and took ≤ 16: the value's ≤ 11 bits are there.
+        Some(bits.value(size))
+    }
+
     /// The next symbol; `None` for a code in no table (corrupt data).
     fn symbol(&self, bits: &mut Bits) -> Option<u8> {
         bits.refill();
@@ -246,7 +256,7 @@ impl Huffman {
                 }
                 k += 16;
             } else {
-                bits.refill();
+                // The refill above left ≥ 57 bits; a code took ≤ 16 of them.
                 bits.consume(size);
                 k += run + 1;
             }
@@ -325,12 +335,11 @@ impl<'a> Bits<'a> {
         self.count = self.count.saturating_sub(n);
     }
 
-    /// `size` bits as JPEG's signed magnitude (EXTEND).
+    /// `size` bits as JPEG's signed magnitude (EXTEND); the caller has them in the buffer.
     fn value(&mut self, size: u32) -> i32 {
         if size == 0 {
             return 0;
         }
-        self.refill();
         let v = self.peek(size) as i32;
         self.consume(size);
         if v < 1 << (size - 1) { v - (1 << size) + 1 } else { v }
@@ -415,12 +424,8 @@ fn scan(frame: &Frame, tables: &Tables, restart: usize, header: &[u8], data: &[u
         for p in &mut planes {
             for by in my * p.v..(my + 1) * p.v {
                 for bx in mx * p.h..(mx + 1) * p.h {
-                    let size = u32::from(p.dc.symbol(&mut bits)?);
-                    if size > 11 {
-                        return None;
-                    }
                     // Wrapping: corrupt data may sum past i32, and must not panic.
-                    p.predictor = p.predictor.wrapping_add(bits.value(size));
+                    p.predictor = p.predictor.wrapping_add(p.dc.dc_difference(&mut bits)?);
                     p.ac.skip_block(&mut bits)?;
                     // libjpeg's 1×1 inverse DCT: the DC over 8, rounded, shifted to 0-255.
                     let mean = ((i64::from(p.predictor) * i64::from(p.step) + 4) >> 3) + 128;
