@@ -459,9 +459,9 @@ fn to_rgb(frame: &Frame, planes: &[Plane], h_max: usize, v_max: usize) -> DcImag
     // Rounds half up without libm's `roundf` call (a third of this function's time).
     let to_u8 = |v: f32| (v + 0.5).clamp(0.0, 255.0) as u8;
     for y in 0..height {
-        let luma_row = &luma.means[y * luma.blocks_wide..];
-        for x in 0..width {
-            let luma = f32::from(luma_row[x]);
+        let luma_row = &luma.means[y * luma.blocks_wide..][..width];
+        for (x, &luma) in luma_row.iter().enumerate() {
+            let luma = f32::from(luma);
             let (cb, cr) = (cb_at.at(cb, x, y) - 128.0, cr_at.at(cr, x, y) - 128.0);
             rgb8.extend_from_slice(&[
                 to_u8(luma + 1.402 * cr),
