@@ -253,7 +253,22 @@ pub fn crop(image: &Rgb8Image, bbox: Option<CropBox>, crop: [usize; 2]) -> Resul
     let horizontal = resample_rows(image, &cols, &rows, pad);
     let plane = ch * cw;
     let mut pixels = vec![0f32; 3 * plane];
+    let mut sums = vec![0f64; cw * 3];
     for (i, row_taps) in rows.iter().enumerate() {
+        // Rows whose taps are all inside the image are summed a whole row at a time (each sum
+        // gets the same terms in the same order as the general path below, so the same bits).
+        if let Some(values) = horizontal.rows(row_taps.start, row_taps.weights.len()) {
+            sums.fill(0.0);
+            for (&wt, row) in row_taps.weights.iter().zip(values.chunks_exact(cw * 3)) {
+                sums.iter_mut().zip(row).for_each(|(s, &v)| *s += wt * v);
+            }
+            for (j, sum) in sums.chunks_exact(3).enumerate() {
+                for c in 0..3 {
+                    pixels[c * plane + i * cw + j] = sum[c] as f32 / 255.0;
+                }
+            }
+            continue;
+        }
         for j in 0..cw {
             for (c, channel) in pad.iter().enumerate() {
                 let mut v = 0.0;
@@ -305,6 +320,12 @@ struct Horizontal {
 }
 
 impl Horizontal {
+    /// Rows `y .. y + n` of the pass, if all are inside the image.
+    fn rows(&self, y: isize, n: usize) -> Option<&[f64]> {
+        let r = usize::try_from(y - self.first_row).ok()?;
+        self.values.get(r * self.width * 3..(r + n) * self.width * 3)
+    }
+
     /// The resampled value at source row `y`, output column `j`; `None` outside the image.
     fn get(&self, y: isize, j: usize, c: usize) -> Option<f64> {
         let r = usize::try_from(y - self.first_row).ok()?;
@@ -323,11 +344,22 @@ fn resample_rows(image: &Rgb8Image, cols: &[Taps], rows: &[Taps], pad: [f64; 3])
         let row = &image.pixels[y as usize * image.width * 3..(y as usize + 1) * image.width * 3];
         for t in cols {
             let mut v = [0.0f64; 3];
-            for (k, &wt) in t.weights.iter().enumerate() {
-                let x = t.start + k as isize;
-                let px = usize::try_from(x).ok().filter(|&x| x < image.width).map(|x| &row[x * 3..x * 3 + 3]);
-                for c in 0..3 {
-                    v[c] += wt * px.map_or(pad[c], |p| f64::from(p[c]));
+            // Taps inside the row (all but a padded edge's) skip the per-tap bounds test; the
+            // sums are the same, term by term, as the general path's.
+            let inside = usize::try_from(t.start).ok().filter(|&x| x + t.weights.len() <= image.width);
+            if let Some(x) = inside {
+                for (&wt, p) in t.weights.iter().zip(row[x * 3..].chunks_exact(3)) {
+                    for c in 0..3 {
+                        v[c] += wt * f64::from(p[c]);
+                    }
+                }
+            } else {
+                for (k, &wt) in t.weights.iter().enumerate() {
+                    let x = t.start + k as isize;
+                    let px = usize::try_from(x).ok().filter(|&x| x < image.width).map(|x| &row[x * 3..x * 3 + 3]);
+                    for c in 0..3 {
+                        v[c] += wt * px.map_or(pad[c], |p| f64::from(p[c]));
+                    }
                 }
             }
             values.extend_from_slice(&v);
