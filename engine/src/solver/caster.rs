@@ -34,7 +34,12 @@ pub struct CuboidCaster {
     counts: [usize; 3],
     /// First vertex of each side, indexed `2·axis + outward` as `Cuboid::mesh` lays them out.
     first: [u32; 6],
+    /// Grid cells per unit length along x, y, z (hoisted out of the per-cell cast).
+    per_unit: [f64; 3],
 }
+
+/// The axis after each axis, cyclically (`(k + 1) % 3` without a division in the hot loop).
+const NEXT: [usize; 3] = [1, 2, 0];
 
 /// Where a ray enters the box: the triangle's vertices, their weights, and the weights'
 /// derivatives along the side's two in-plane axes.
@@ -126,7 +131,8 @@ impl CuboidCaster {
                 next += side;
             }
         }
-        Some(CuboidCaster { min, max, counts, first })
+        let per_unit = std::array::from_fn(|k| (counts[k] - 1) as f64 / (max[k] - min[k]));
+        Some(CuboidCaster { min, max, counts, first, per_unit })
     }
 
     /// The cells whose centres can see the box, as `[row, first col, end col)` runs: per row,
@@ -205,10 +211,10 @@ impl CuboidCaster {
         }
         // A ray going down the axis enters through the side at its maximum (outward normal +).
         let outward = usize::from(dir[axis] < 0.0);
-        let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+        let (u, v) = (NEXT[axis], NEXT[NEXT[axis]]);
         let (nu, nv) = (self.counts[u], self.counts[v]);
         let cell = |k: usize, n: usize| {
-            let per_unit = (n - 1) as f64 / (self.max[k] - self.min[k]);
+            let per_unit = self.per_unit[k];
             let f = (o[k] + t_in * dir[k] - self.min[k]) * per_unit;
             // `as` truncates and saturates: floor for f ≥ 0, and 0 for an entry a rounding error
             // outside the box (no libm call in the hot loop).
@@ -261,7 +267,7 @@ impl PoseGradient {
     pub fn add(&mut self, hit: &Hit, s: [f64; 3], centre: [f64; 2], camera: &Camera, distance: f64) {
         let gu = s[0] * hit.dw_du[0] + s[1] * hit.dw_du[1] + s[2] * hit.dw_du[2];
         let gv = s[0] * hit.dw_dv[0] + s[1] * hit.dw_dv[1] + s[2] * hit.dw_dv[2];
-        let (n, u, v) = (hit.axis, (hit.axis + 1) % 3, (hit.axis + 2) % 3);
+        let (n, u, v) = (hit.axis, NEXT[hit.axis], NEXT[NEXT[hit.axis]]);
         let mut g = [0.0; 3];
         g[u] = gu;
         g[v] = gv;
