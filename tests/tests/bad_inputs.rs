@@ -129,7 +129,7 @@ fn bad_inputs_get_their_status_and_message_and_the_server_stays_healthy() {
         let (post, good, busy) = (&post, &good, &busy);
         let busy = s.spawn(move || post(busy, good));
         std::thread::sleep(std::time::Duration::from_millis(50));
-        expect(post("/v1/pose/car?timeout_ms=1", &good), 504, "DEADLINE_EXCEEDED", "deadline passed");
+        expect(post("/v1/pose/car?timeout_ms=1", good), 504, "DEADLINE_EXCEEDED", "deadline passed");
         assert_eq!(busy.join().unwrap().status, 200);
     });
     let missing = server.request("POST", "/v1/pose/car", &[], &good);
