@@ -66,9 +66,9 @@ impl Header {
 
     /// Decodes the image to RGB8 at `1 / reduction` of its size (1, 2, 4 or 8, from
     /// `udapose_engine::input::max_reduction`): a JPEG by its DCT's own scaling (at 1/8 from
-    /// its DC coefficients alone, [`jpeg_dc`], where the file is baseline), anything else (and JPEGs the scaling
-    /// decoder does not take: CMYK, 16-bit, any it refuses) at full size, then by block means
-    /// ([`reduced`]). Either way the crop then resamples an image `reduction²` times smaller.
+    /// its DC coefficients alone, [`jpeg_dc`], where the file is baseline), anything else (and
+    /// JPEGs the scaling decoder does not take: CMYK, 16-bit, any it refuses) at full size, then
+    /// by block means ([`reduced`]). Either way the crop then resamples an image `reduction²` times smaller.
     pub fn decode_for(&self, bytes: &[u8], limits: DecodeLimits, reduction: u32) -> Result<Pixels, ApiError> {
         if reduction <= 1 {
             return self.decode(bytes, limits);
@@ -157,9 +157,8 @@ fn decode_jpeg_reduced(bytes: &[u8], header: Header, limits: DecodeLimits, reduc
     use jpeg_decoder::PixelFormat::{L8, RGB24};
     let encoded = [header.width as usize, header.height as usize];
     if reduction == 8
-        && let Some(image) = jpeg_dc::decode(bytes, header.width, header.height)
+        && let Some(DcImage { rgb8, width, height }) = jpeg_dc::decode(bytes, header.width, header.height)
     {
-        let DcImage { rgb8, width, height } = image;
         return Some(Pixels { rgb8, width, height, encoded });
     }
     let mut decoder = jpeg_decoder::Decoder::new(Cursor::new(bytes));
@@ -218,7 +217,7 @@ pub fn raw(width: u32, height: u32, rgb8: &[u8], limits: DecodeLimits) -> Result
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     fn jpeg() -> Vec<u8> {
@@ -228,7 +227,7 @@ mod tests {
         out
     }
 
-    fn pattern_jpeg(width: u32, height: u32, grey: bool) -> Vec<u8> {
+    pub(crate) fn pattern_jpeg(width: u32, height: u32, grey: bool) -> Vec<u8> {
         let value = |x: u32, y: u32, c: u32| {
             (128.0 + 100.0 * ((x as f64 / 37.0 + c as f64).sin() * (y as f64 / 23.0).cos())) as u8
         };
@@ -245,7 +244,7 @@ mod tests {
 
     /// Mean absolute difference between a reduced decode and the full decode averaged over the
     /// same `r × r` blocks (what the DCT's scaling approximates).
-    fn block_error(full: &Pixels, reduced: &Pixels, r: usize) -> f64 {
+    pub(crate) fn block_error(full: &Pixels, reduced: &Pixels, r: usize) -> f64 {
         let mut total = 0.0;
         for y in 0..reduced.height {
             for x in 0..reduced.width {
