@@ -107,8 +107,15 @@ impl Loader {
 
     /// Starts the next epoch: a new shuffled order; the last batch may be short.
     pub fn epoch(&mut self) -> Epoch {
+        self.epoch_from(0)
+    }
+
+    /// Starts the next epoch at its batch `first` (a run resumed within an epoch): the same
+    /// shuffled order as [`Loader::epoch`], the batches before `first` not read.
+    pub fn epoch_from(&mut self, first: usize) -> Epoch {
         let mut order: Vec<usize> = (0..self.split.len()).collect();
         order.shuffle(&mut self.rng);
+        order.drain(..(first * self.batch_size).min(order.len()));
         let (tx, rx) = sync_channel(self.prefetch);
         let (split, batch_size) = (self.split.clone(), self.batch_size);
         let worker = std::thread::spawn(move || produce(&split, &order, batch_size, &tx));

@@ -1,5 +1,6 @@
 //! `udapose-lab train`: the source model (METHOD.md §5) from a SynCar-OOD dataset, resumable
-//! from its last epoch, with a validation curve on `source/val`.
+//! from its last checkpoint (each epoch's end, and every `--checkpoint-minutes` within one), with
+//! a validation curve on `source/val`.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -68,9 +69,13 @@ pub struct Args {
     /// or EfficientNet-Lite converted by lab/scripts/efficientnet_lite.py (`make lite-weights`).
     #[arg(long)]
     init_backbone: Option<PathBuf>,
-    /// Where per-epoch checkpoints go (default: `<out>.work`); a run resumes from the latest.
+    /// Where checkpoints go (default: `<out>.work`); a run resumes from the latest.
     #[arg(long)]
     work: Option<PathBuf>,
+    /// Within an epoch, a checkpoint after the first batch that ends this many minutes after the
+    /// last one (every epoch's end has one too); 0: at epochs' ends only.
+    #[arg(long, default_value_t = 10.0)]
+    checkpoint_minutes: f64,
     /// Storage of the saved model's tensors: f16 (half the size) or f32.
     #[arg(long, default_value = "f16")]
     dtype: String,
@@ -94,8 +99,8 @@ pub fn run(args: &Args) -> Result<()> {
     let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("{}.work", args.out.display())));
     std::fs::create_dir_all(&work)?;
     let mut progress = train::state::resume(&work, &mut vs, &mut training)?;
-    if progress.epoch > 0 {
-        eprintln!("resuming from {} (epoch {})", work.display(), progress.epoch);
+    if progress.epoch > 0 || progress.step > 0 {
+        eprintln!("resuming from {} (epoch {}, step {})", work.display(), progress.epoch, progress.step);
     }
 
     let train = SyncarSplit::open(&args.data, "source", "train")?;
@@ -104,7 +109,8 @@ pub fn run(args: &Args) -> Result<()> {
     for _ in 0..progress.epoch {
         drop(loader.epoch()); // replay the shuffles of the epochs already done
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ progress.epoch as u64);
+    // A run resumed within an epoch draws its augmentations afresh, like Adam's moments.
+    let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ progress.epoch as u64 ^ ((progress.step as u64) << 32));
     // tch cannot save an optimiser's state: a resumed run starts Adam afresh.
     let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&vs, args.lr)?;
     let recipe = Recipe {
@@ -121,30 +127,19 @@ pub fn run(args: &Args) -> Result<()> {
         warmup_steps: args.warmup_steps,
         total_steps: steps_per_epoch * args.epochs,
     };
-    for epoch in progress.epoch..args.epochs {
+    let mut run =
+        Run { backbone: &backbone, training: &mut training, vs: &vs, opt: &mut opt, rng: &mut rng, work: &work };
+    while progress.epoch < args.epochs {
+        let epoch = progress.epoch;
+        let loss = run.epoch(args, &mut loader, &recipe, &lr, &mut progress)?;
         let started = Instant::now();
-        let bar = bar(loader.len() as u64, &format!("epoch {}/{}", epoch + 1, args.epochs));
-        let mut loss_sum = (0.0, 0usize);
-        for (i, batch) in loader.epoch().enumerate() {
-            let batch = batch?;
-            lr.apply(&mut opt, epoch * steps_per_epoch + i);
-            let mut images = images_tensor(&batch, device);
-            if let Some(augment) = &recipe.augment {
-                images = augment.apply(&images, &mut rng);
-            }
-            let stats = training.backward_step(&backbone, &mut opt, &images, &batch.poses, &mut rng)?;
-            loss_sum = (loss_sum.0 + stats.loss, loss_sum.1 + 1);
-            bar.set_message(format!("loss {:.3}", loss_sum.0 / loss_sum.1 as f64));
-            bar.inc(batch.len() as u64);
-        }
-        bar.finish_and_clear();
-        let metrics = validate(&backbone, &training, &val, &camera, args.val_images)?;
-        progress.epoch = epoch + 1;
+        let metrics = validate(&backbone, run.training, &val, &camera, args.val_images)?;
         progress.seconds += started.elapsed().as_secs_f64();
-        let point = json!({"epoch": epoch + 1, "loss": loss_sum.0 / loss_sum.1.max(1) as f64, "val": metrics, "seconds": progress.seconds});
+        let point = json!({"epoch": epoch + 1, "loss": loss, "val": metrics, "seconds": progress.seconds});
         eprintln!("epoch {}: {point}", epoch + 1);
         progress.curve.push(point);
-        train::state::save(&work, &vs, &training, &progress)?;
+        progress.epoch = epoch + 1;
+        train::state::save(&work, &vs, run.training, &progress)?;
     }
     let (tau, r_bar) = statistics(&backbone, &training, &train, args.batch)?;
     let neural_mesh = training.neural_mesh(tau, r_bar);
@@ -152,6 +147,59 @@ pub fn run(args: &Args) -> Result<()> {
     checkpoint::save(&args.out, &manifest, &vs, &neural_mesh)?;
     eprintln!("saved {} after {:.0} s of training", args.out.display(), progress.seconds);
     Ok(())
+}
+
+/// What one epoch's steps change: the model, its optimiser and the augmentations' draws.
+struct Run<'a> {
+    backbone: &'a Backbone,
+    training: &'a mut SourceTraining,
+    vs: &'a nn::VarStore,
+    opt: &'a mut nn::Optimizer,
+    rng: &'a mut ChaCha8Rng,
+    work: &'a std::path::Path,
+}
+
+impl Run<'_> {
+    /// The batches of epoch `progress.epoch` from `progress.step` on, checkpointed every
+    /// `--checkpoint-minutes`; the epoch's mean loss. `progress` ends at the epoch's last batch
+    /// (step 0 again, the time spent added), ready for the caller's epoch-end checkpoint.
+    fn epoch(
+        &mut self,
+        args: &Args,
+        loader: &mut Loader,
+        recipe: &Recipe,
+        lr: &LearningRates,
+        progress: &mut Progress,
+    ) -> Result<f64> {
+        let (epoch, first) = (progress.epoch, progress.step);
+        let steps_per_epoch = loader.len().div_ceil(args.batch);
+        let bar = bar(loader.len() as u64, &format!("epoch {}/{}", epoch + 1, args.epochs));
+        bar.set_position((first * args.batch).min(loader.len()) as u64);
+        let mut since = Instant::now();
+        for (step, batch) in (first..).zip(loader.epoch_from(first)) {
+            let batch = batch?;
+            lr.apply(self.opt, epoch * steps_per_epoch + step);
+            let mut images = images_tensor(&batch, self.training.vertex_features.device());
+            if let Some(augment) = &recipe.augment {
+                images = augment.apply(&images, self.rng);
+            }
+            let stats = self.training.backward_step(self.backbone, self.opt, &images, &batch.poses, self.rng)?;
+            progress.loss_sum += stats.loss;
+            progress.step = step + 1;
+            bar.set_message(format!("loss {:.3}", progress.loss_sum / progress.step as f64));
+            bar.inc(batch.len() as u64);
+            let due = args.checkpoint_minutes > 0.0 && since.elapsed().as_secs_f64() >= args.checkpoint_minutes * 60.0;
+            if due && progress.step < steps_per_epoch {
+                progress.seconds += std::mem::replace(&mut since, Instant::now()).elapsed().as_secs_f64();
+                train::state::save(self.work, self.vs, self.training, progress)?;
+            }
+        }
+        bar.finish_and_clear();
+        progress.seconds += since.elapsed().as_secs_f64();
+        let loss = progress.loss_sum / progress.step.max(1) as f64;
+        (progress.step, progress.loss_sum) = (0, 0.0);
+        Ok(loss)
+    }
 }
 
 /// The dataset's manifest and what training takes from it.

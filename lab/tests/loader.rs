@@ -29,6 +29,20 @@ fn an_epoch_yields_every_sample_once_in_a_seeded_order() {
     assert_ne!(a[0], order(8)[0]);
 }
 
+/// A run resumed within an epoch reads the rest of the very order it was interrupted in.
+#[test]
+fn an_epoch_started_at_a_batch_continues_the_same_order() {
+    let split = SyncarSplit::open(&quick_data(), "source", "val").unwrap();
+    let names = |first: usize| {
+        let mut loader = Loader::new(split.clone(), 16, 2, 7).unwrap();
+        drop(loader.epoch());
+        loader.epoch_from(first).flat_map(|b| b.unwrap().names).collect::<Vec<String>>()
+    };
+    let whole = names(0);
+    assert_eq!(names(2), whole[32..]);
+    assert!(names(whole.len()).is_empty());
+}
+
 #[test]
 fn batches_hold_planar_pixels_and_the_stored_poses() {
     let split = SyncarSplit::open(&quick_data(), "source", "val").unwrap();

@@ -116,7 +116,7 @@ fn training_resumes_from_its_last_epoch() {
     };
     train("1", &out);
     let log = train("2", &out.with_extension("b"));
-    assert!(log.contains("resuming from") && log.contains("(epoch 1)"), "{log}");
+    assert!(log.contains("resuming from") && log.contains("(epoch 1, step 0)"), "{log}");
     let model = checkpoint::load(&out.with_extension("b"), tch::Device::Cpu).unwrap();
     assert_eq!(model.manifest.training["validation_curve"].as_array().unwrap().len(), 2);
     assert!(
@@ -124,6 +124,51 @@ fn training_resumes_from_its_last_epoch() {
             .contains("already exists")
     );
     for dir in [out.clone(), out.with_extension("b"), work] {
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
+
+/// A run killed within its first epoch resumes from the batch of its last checkpoint (not from
+/// the epoch's start), finishes the epoch once, and keeps at most two checkpoints.
+#[test]
+fn training_killed_within_an_epoch_resumes_from_its_last_step() {
+    let data = env_path("UDAPOSE_QUICK_DATA");
+    let (out, work) = (tmp("mid-epoch"), tmp("mid-epoch-work"));
+    // A checkpoint after every batch (0.0001 min), so the kill lands between two of them.
+    let args = |out: &Path| {
+        let mut cmd = Command::new(LAB);
+        cmd.args(["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()])
+            .args(["--work", work.to_str().unwrap(), "--epochs", "1", "--val-images", "8"])
+            .args(["--checkpoint-minutes", "0.0001"]);
+        cmd
+    };
+    let mut child = args(&out).stderr(std::process::Stdio::null()).spawn().unwrap();
+    let stepped = || {
+        std::fs::read_dir(&work).into_iter().flatten().flatten().any(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            name.starts_with("epoch-0000-step-") && e.path().join("progress.json").is_file()
+        })
+    };
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while !stepped() {
+        assert!(std::time::Instant::now() < deadline && child.try_wait().unwrap().is_none(), "no step checkpoint");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!out.exists(), "killed before the model was saved");
+
+    let resumed = args(&out).output().unwrap();
+    let log = String::from_utf8_lossy(&resumed.stderr);
+    assert!(resumed.status.success(), "{log}");
+    let at = log.split("(epoch 0, step ").nth(1).and_then(|r| r.split(')').next()?.parse::<usize>().ok());
+    assert!(at.is_some_and(|step| step >= 1), "{log}");
+    let model = checkpoint::load(&out, tch::Device::Cpu).unwrap();
+    let curve = model.manifest.training["validation_curve"].as_array().unwrap().clone();
+    assert_eq!(curve.len(), 1, "{curve:?}");
+    assert!(curve[0]["loss"].as_f64().is_some_and(f64::is_finite), "{curve:?}");
+    assert!(std::fs::read_dir(&work).unwrap().count() <= 2);
+    for dir in [out, work] {
         std::fs::remove_dir_all(dir).unwrap();
     }
 }
