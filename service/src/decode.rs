@@ -68,7 +68,8 @@ impl Header {
     /// `udapose_engine::input::max_reduction`): a JPEG by its DCT's own scaling (at 1/8 from
     /// its DC coefficients alone, [`jpeg_dc`], where the file is baseline), anything else (and
     /// JPEGs the scaling decoder does not take: CMYK, 16-bit, any it refuses) at full size, then
-    /// by block means ([`reduced`]). Either way the crop then resamples an image `reduction²` times smaller.
+    /// by block means ([`reduced`]). Either way the crop then resamples an image `reduction²`
+    /// times smaller.
     pub fn decode_for(&self, bytes: &[u8], limits: DecodeLimits, reduction: u32) -> Result<Pixels, ApiError> {
         if reduction <= 1 {
             return self.decode(bytes, limits);

@@ -42,7 +42,7 @@ fn state_error(dir: &Path, what: impl std::fmt::Display) -> EngineError {
 
 /// Loads the latest checkpoint of `work` into `vs` and `training`; a run with none starts afresh.
 pub fn resume(work: &Path, vs: &mut nn::VarStore, training: &mut SourceTraining) -> Result<Progress> {
-    let Some(dir) = latest_epoch(work)? else { return Ok(Progress::default()) };
+    let Some(dir) = latest_checkpoint(work)? else { return Ok(Progress::default()) };
     let text = fs::read_to_string(dir.join(PROGRESS))?;
     let progress: Progress = serde_json::from_str(&text).map_err(|e| state_error(&dir, e))?;
     let tensors: BTreeMap<String, Tensor> = crate::checkpoint::read_tensors(&dir.join(STATE))?;
@@ -93,7 +93,7 @@ fn checkpoints(work: &Path) -> Result<Vec<((usize, usize), PathBuf)>> {
 }
 
 /// The directory of the newest complete checkpoint in `work`.
-pub fn latest_epoch(work: &Path) -> Result<Option<PathBuf>> {
+pub fn latest_checkpoint(work: &Path) -> Result<Option<PathBuf>> {
     Ok(checkpoints(work)?.pop().map(|(_, p)| p))
 }
 
@@ -130,7 +130,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn names_order_checkpoints_by_epoch_then_step() {
+    fn checkpoint_names_round_trip() {
         for at in [(0, 5), (3, 0), (12, 187)] {
             assert_eq!(parse_name(&dir_name(at.0, at.1)), Some(at));
         }
@@ -156,7 +156,7 @@ mod tests {
                 fs::write(work.join(name).join(PROGRESS), "{}").unwrap();
             }
         }
-        assert_eq!(latest_epoch(&work).unwrap(), Some(work.join("epoch-0001-step-000050")));
+        assert_eq!(latest_checkpoint(&work).unwrap(), Some(work.join("epoch-0001-step-000050")));
         fs::remove_dir_all(&work).unwrap();
     }
 }
