@@ -116,7 +116,9 @@ impl ServerProcess {
         let dir = std::env::temp_dir().join(format!("udapose-bench-{name}-{}", std::process::id()));
         let _ = fs::remove_dir_all(&dir);
         fs::create_dir_all(dir.join("models"))?;
-        std::os::unix::fs::symlink(model, dir.join("models/car"))?;
+        // A relative target would resolve inside `dir/models`, not where the caller meant.
+        let model = fs::canonicalize(model).with_context(|| format!("model {}", model.display()))?;
+        std::os::unix::fs::symlink(&model, dir.join("models/car"))?;
         let [http, grpc] = free_addrs(2)?[..] else { unreachable!("two addresses") };
         let mut command = Command::new(binary);
         command
