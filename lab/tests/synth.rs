@@ -102,9 +102,13 @@ fn annotations_lie_in_their_ranges() {
                 match (d.occlusion, a.occ_fraction) {
                     (Some(band), Some(f)) => {
                         assert!(f >= band.0 && f <= band.1, "{at}: occlusion {f} outside {band:?}");
+                        // The stored occluder mask covers exactly that share of the object.
+                        let o = a.occluder.as_ref().unwrap_or_else(|| panic!("{at}: no occluder mask"));
+                        let hidden = o.data.iter().zip(&a.mask.data).filter(|&(&o, &m)| o == 1 && m == 1).count();
+                        assert_eq!(hidden as f64 / covered as f64, f, "{at}");
                         occ.entry(d.name.clone()).or_default().push(f);
                     }
-                    (None, None) => {}
+                    (None, None) => assert!(a.occluder.is_none(), "{at}: an occluder without occlusion"),
                     other => panic!("{at}: occlusion {other:?}"),
                 }
             }

@@ -19,9 +19,9 @@ use crate::npz::{NpyArray, NpyData, NpyError, Npz};
 pub const CATEGORY: &str = "car";
 /// Name of the list file in `lists/car/`.
 pub const LIST_FILE: &str = "list.txt";
-/// The annotation keys in the order they are written (BENCHMARK.md §4); `occ_fraction` only in
-/// the occlusion domains.
-pub const KEYS: [&str; 14] = [
+/// The annotation keys in the order they are written (BENCHMARK.md §4); `occ_fraction` and
+/// `occluder` only in the occlusion domains.
+pub const KEYS: [&str; 15] = [
     "azimuth",
     "elevation",
     "theta",
@@ -36,6 +36,7 @@ pub const KEYS: [&str; 14] = [
     "cad_index",
     "mask",
     "occ_fraction",
+    "occluder",
 ];
 
 /// The ground truth of one SynCar-OOD crop, as the `synth` command writes it and readers load it.
@@ -52,21 +53,17 @@ pub struct Annotation {
     pub mask: Mask,
     /// Measured fraction of the mask covered by occluders (occlusion domains only).
     pub occ_fraction: Option<f64>,
+    /// The pixels the occluders cover, `height × width` (occlusion domains of datasets rendered
+    /// since it was added): the oracle leaves the vertices under them out of its positives.
+    pub occluder: Option<Mask>,
 }
 
 impl Annotation {
     /// The npz: keys in [`KEYS`] order, floats as `<f8` 0-d arrays, `principal` as `<f8 (2,)`,
-    /// `height`, `width`, `cad_index` as `<i8`, `car` as `<U n`, `mask` as `|u1 (H, W)`.
+    /// `height`, `width`, `cad_index` as `<i8`, `car` as `<U n`, `mask` and `occluder` as `|u1 (H, W)`.
     pub fn to_npz(&self) -> Result<Npz, NpyError> {
         let p = &self.pose;
-        if (self.mask.height, self.mask.width) != (p.height, p.width) {
-            return Err(NpyError::ShapeMismatch {
-                shape: vec![p.height, p.width],
-                expected: p.height * p.width,
-                actual: self.mask.data.len(),
-            });
-        }
-        let mask = NpyArray::new(vec![p.height, p.width], NpyData::U8(self.mask.data.clone()))?;
+        let mask = full_size(&self.mask, "mask", p)?;
         let mut npz = Npz::new();
         npz.insert("azimuth", p.azimuth);
         npz.insert("elevation", p.elevation);
@@ -84,6 +81,9 @@ impl Annotation {
         if let Some(fraction) = self.occ_fraction {
             npz.insert("occ_fraction", fraction);
         }
+        if let Some(occluder) = &self.occluder {
+            npz.insert("occluder", full_size(occluder, "occluder", p)?);
+        }
         Ok(npz)
     }
 
@@ -100,15 +100,20 @@ impl Annotation {
             height: size(npz, "height")?,
             width: size(npz, "width")?,
         };
-        let mask = mask_from(npz, "mask")?;
-        if (mask.height, mask.width) != (pose.height, pose.width) {
-            return Err(NpyError::WrongType {
-                key: "mask".into(),
-                expected: "a mask of height × width",
-                found: format!("{}×{} for a {}×{} crop", mask.height, mask.width, pose.height, pose.width),
-            });
-        }
+        let crop_mask = |key: &str| -> Result<Mask, NpyError> {
+            let mask = mask_from(npz, key)?;
+            if (mask.height, mask.width) != (pose.height, pose.width) {
+                return Err(NpyError::WrongType {
+                    key: key.into(),
+                    expected: "a mask of height × width",
+                    found: format!("{}×{} for a {}×{} crop", mask.height, mask.width, pose.height, pose.width),
+                });
+            }
+            Ok(mask)
+        };
+        let mask = crop_mask("mask")?;
         let occ_fraction = npz.contains("occ_fraction").then(|| npz.f64_scalar("occ_fraction")).transpose()?;
+        let occluder = npz.contains("occluder").then(|| crop_mask("occluder")).transpose()?;
         Ok(Annotation {
             pose,
             fill: npz.f64_scalar("fill")?,
@@ -116,8 +121,21 @@ impl Annotation {
             cad_index: npz.i64_scalar("cad_index")?,
             mask,
             occ_fraction,
+            occluder,
         })
     }
+}
+
+/// A mask as the npz's `|u1 (H, W)` array, refused unless it has the crop's size.
+fn full_size(mask: &Mask, key: &str, p: &CropPose) -> Result<NpyArray, NpyError> {
+    if (mask.height, mask.width) != (p.height, p.width) {
+        return Err(NpyError::WrongType {
+            key: key.into(),
+            expected: "a mask of height × width",
+            found: format!("{}×{} for a {}×{} crop", mask.height, mask.width, p.height, p.width),
+        });
+    }
+    NpyArray::new(vec![p.height, p.width], NpyData::U8(mask.data.clone()))
 }
 
 /// Writes one annotation (atomically: temporary file, then rename).

@@ -144,7 +144,7 @@ pub fn render_sample(
     let background = random_crop(&pool[rng.random_range(0..pool.len())], width as u32, height as u32, rng);
     let (mut image, mask) = layer.composite(&background);
 
-    let occ_fraction = match domain.occlusion {
+    let occlusion = match domain.occlusion {
         Some(band) => Some(occlusion::occlude(&mut image, &mask, band, &world.backgrounds.source, rng)?),
         None => None,
     };
@@ -166,7 +166,12 @@ pub fn render_sample(
         width,
     };
     let mask = Mask::new(height, width, mask).expect("the renderer makes a full-size mask");
-    let annotation = Annotation { pose, fill, car: car.to_string(), cad_index: cad_index as i64, mask, occ_fraction };
+    let (occ_fraction, occluder) = match occlusion {
+        Some(o) => (Some(o.fraction), Mask::new(height, width, o.covered)),
+        None => (None, None),
+    };
+    let annotation =
+        Annotation { pose, fill, car: car.to_string(), cad_index: cad_index as i64, mask, occ_fraction, occluder };
     Ok(Sample { image, annotation })
 }
 

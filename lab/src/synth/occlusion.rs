@@ -13,15 +13,21 @@ const MAX_TRIES: usize = 2000;
 /// top of the band no occluder is small enough to reach a target just below it.
 const STALL: usize = 50;
 
-/// Paints occluders over `image` and returns the covered fraction of `mask`, which lies in
-/// `[band.0, band.1]`.
+/// What the occluders did: the covered fraction of the object mask, in `[band.0, band.1]`, and
+/// every pixel they cover (1), object or not.
+pub struct Occlusion {
+    pub fraction: f64,
+    pub covered: Vec<u8>,
+}
+
+/// Paints occluders over `image`, covering a fraction of `mask` within `band`.
 pub fn occlude(
     image: &mut RgbImage,
     mask: &[u8],
     band: (f64, f64),
     photos: &[RgbImage],
     rng: &mut ChaCha8Rng,
-) -> Result<f64> {
+) -> Result<Occlusion> {
     let (w, h) = (image.width() as usize, image.height() as usize);
     let area = mask.iter().filter(|&&m| m != 0).count();
     let Some(bbox) = bounding_box(mask, w) else { bail!("no object pixels to occlude") };
@@ -38,7 +44,7 @@ pub fn occlude(
             scale = (scale * 0.9).max(0.05); // too big for what is left of the band
             rejected += 1;
             if rejected >= STALL && hits as f64 >= band.0 * area as f64 {
-                return Ok(hits as f64 / area as f64);
+                return Ok(Occlusion::of(hits, area, &covered));
             }
             continue;
         }
@@ -49,10 +55,16 @@ pub fn occlude(
         pixels.iter().for_each(|&p| covered[p] = true);
         hits += new_hits;
         if hits as f64 >= target * area as f64 {
-            return Ok(hits as f64 / area as f64);
+            return Ok(Occlusion::of(hits, area, &covered));
         }
     }
     bail!("could not place occluders covering {:.0}–{:.0}% of the object", band.0 * 100.0, band.1 * 100.0)
+}
+
+impl Occlusion {
+    fn of(hits: usize, area: usize, covered: &[bool]) -> Occlusion {
+        Occlusion { fraction: hits as f64 / area as f64, covered: covered.iter().map(|&c| u8::from(c)).collect() }
+    }
 }
 
 /// `(x0, y0, x1, y1)` of the non-zero pixels, exclusive ends.
@@ -163,8 +175,13 @@ mod tests {
             for seed in 0..20 {
                 let mut rng = ChaCha8Rng::seed_from_u64(seed * 10 + k as u64);
                 let mut img = RgbImage::new(w as u32, h as u32);
-                let f = occlude(&mut img, &mask, band, std::slice::from_ref(&photo), &mut rng).unwrap();
+                let o = occlude(&mut img, &mask, band, std::slice::from_ref(&photo), &mut rng).unwrap();
+                let f = o.fraction;
                 assert!(f >= band.0 && f <= band.1, "band {band:?}: {f}");
+                // The occluder mask is exactly the pixels painted, and its share of the object f.
+                let shown: Vec<bool> = img.as_raw().chunks(3).map(|p| p != [0, 0, 0]).collect();
+                assert!(o.covered.iter().zip(&shown).all(|(&c, &s)| c == 1 || !s), "painted outside the mask");
+                let on_object = o.covered.iter().zip(&mask).filter(|&(&c, &m)| c == 1 && m != 0).count();
                 // The stored figure is what the image shows: painted object pixels / object area.
                 let painted = mask
                     .iter()
@@ -172,6 +189,7 @@ mod tests {
                     .filter(|(i, m)| **m != 0 && img.as_raw()[3 * i..3 * i + 3] != [0, 0, 0])
                     .count();
                 let area = mask.iter().filter(|m| **m != 0).count();
+                assert_eq!(on_object as f64 / area as f64, f);
                 assert!((painted as f64 / area as f64 - f).abs() < 0.02, "measured {painted}/{area} vs {f}");
             }
         }
