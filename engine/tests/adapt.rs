@@ -1,6 +1,7 @@
 //! The mechanics of 3DUDA's EM loop and of the oracle on a small random model: the source is
 //! never modified, progress arrives phase by phase, cancellation stops the run, the firing test
-//! gates every update, and the oracle takes exactly its budget. (Whether adaptation *helps* is
+//! gates every update, the oracle takes exactly its budget (or trains to a plateau) and leaves
+//! occluded vertices out. (Whether adaptation *helps* is
 //! measured on real data: lab/tests/adapt.rs and reports/syncar-ood.md.)
 
 mod support;
@@ -9,7 +10,7 @@ use std::ops::ControlFlow;
 
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::Pose;
-use udapose_engine::adapt::{self, AdaptConfig, Event, Phase, Positives, Selection, Threshold};
+use udapose_engine::adapt::{self, AdaptConfig, Budget, Event, Label, Phase, Positives, Selection, Threshold};
 use udapose_engine::checkpoint;
 use udapose_engine::error::EngineError;
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
@@ -162,17 +163,74 @@ fn cancelling_stops_the_run() {
     assert!(seen >= 2);
 }
 
+fn labels(n: usize) -> Vec<Label> {
+    (0..n).map(|i| Label { pose: Pose::new(0.5 * i as f64, 0.2, 0.0, 5.0), occluded: None }).collect()
+}
+
+fn go(_: Event) -> ControlFlow<()> {
+    ControlFlow::Continue(())
+}
+
 #[test]
 fn the_oracle_takes_exactly_its_budget() {
     let source = random_model("oracle");
-    let poses: Vec<Pose> = (0..5).map(|i| Pose::new(0.5 * i as f64, 0.2, 0.0, 5.0)).collect();
     // 5 images in batches of 3: 2 steps per pass, so 5 steps take 3 passes.
-    let tuned =
-        adapt::finetune(&source, &images(5), &poses, 5, &config(0.8), &mut |_| ControlFlow::Continue(())).unwrap();
+    let tuned = adapt::finetune(&source, &images(5), &labels(5), Budget::Steps(5), &config(0.8), &mut go).unwrap();
     assert_eq!((tuned.backbone_steps, tuned.rounds.len()), (5, 3));
     assert!(!tuned.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features), "C trains with labels");
-    let wrong = adapt::finetune(&source, &images(5), &poses[..4], 5, &config(0.8), &mut |_| ControlFlow::Continue(()));
+    let wrong = adapt::finetune(&source, &images(5), &labels(4), Budget::Steps(5), &config(0.8), &mut go);
     assert!(matches!(wrong, Err(EngineError::InvalidInput(m)) if m.contains("4 poses for 5 images")));
+}
+
+#[test]
+fn the_strong_oracle_trains_until_its_loss_stops_falling() {
+    let source = random_model("plateau");
+    let budget = |tolerance| Budget::Plateau { min_passes: 2, max_passes: 6, tolerance };
+    // A tolerance no pass can beat stops at the minimum; none that every pass beats, at the most.
+    let short = adapt::finetune(&source, &images(5), &labels(5), budget(1.0), &config(0.8), &mut go).unwrap();
+    assert_eq!((short.rounds.len(), short.backbone_steps), (2, 4));
+    let long = adapt::finetune(&source, &images(5), &labels(5), budget(-1e9), &config(0.8), &mut go).unwrap();
+    assert_eq!((long.rounds.len(), long.backbone_steps), (6, 12));
+}
+
+#[test]
+fn occluded_vertices_are_not_positives() {
+    let source = random_model("occluded");
+    let (h, w) = (64, 160);
+    let mut covered = labels(2);
+    covered.iter_mut().for_each(|l| l.occluded = Some(vec![true; h * w]));
+    // Every vertex occluded: no image has a positive left to train.
+    let none = adapt::finetune(&source, &images(2), &covered, Budget::Steps(1), &config(0.8), &mut go);
+    assert!(matches!(none, Err(EngineError::InvalidInput(m)) if m.contains("no labelled image")));
+    // Half the crop covered trains, and differently from no occluder.
+    let mut half = labels(2);
+    half.iter_mut().for_each(|l| l.occluded = Some((0..h * w).map(|p| p % w < w / 2).collect()));
+    let open = adapt::finetune(&source, &images(2), &labels(2), Budget::Steps(1), &config(0.8), &mut go).unwrap();
+    let masked = adapt::finetune(&source, &images(2), &half, Budget::Steps(1), &config(0.8), &mut go).unwrap();
+    assert!(!masked.neural_mesh.vertex_features.equal(&open.neural_mesh.vertex_features));
+    let mut wrong = labels(2);
+    wrong[1].occluded = Some(vec![false; 10]);
+    let err = adapt::finetune(&source, &images(2), &wrong, Budget::Steps(1), &config(0.8), &mut go);
+    assert!(matches!(err, Err(EngineError::InvalidInput(m)) if m.contains("occluder mask of 10 pixels")));
+}
+
+#[test]
+fn fired_matches_are_false_only_away_from_the_true_pose() {
+    let source = random_model("false-fired");
+    let dim = source.neural_mesh.vertex_features.size()[1] as usize;
+    let camera = udapose_engine::Camera::for_crop(64, 160).unwrap();
+    let (h, w) = (64 / 8, 160 / 8);
+    let features = udapose_engine::estimator::Features { data: vec![0.1; dim * h * w], dim, height: h, width: w };
+    let truth = Pose::new(0.4, 0.2, 0.0, 5.0);
+    // A threshold every cosine passes: every visible vertex fires.
+    let count = |pseudo: &Pose| {
+        adapt::false_fired_matches(&source.neural_mesh, &features, &camera, 8, pseudo, &truth, Threshold::Fixed(-2.0))
+            .unwrap()
+    };
+    let (fired, wrong) = count(&truth);
+    assert!(fired > 10 && wrong == 0, "at the true pose: {wrong} of {fired} false");
+    let (fired, wrong) = count(&Pose::new(0.4 + std::f64::consts::PI, 0.2, 0.0, 5.0));
+    assert!(fired > 10 && wrong * 2 > fired, "turned around: only {wrong} of {fired} false");
 }
 
 #[test]

@@ -1,15 +1,18 @@
 //! `udapose-lab adapt` (3DUDA from an image folder, no labels) and `udapose-lab finetune` (the
-//! supervised oracle on a labelled split, with the adaptation's budget).
+//! supervised oracle on a labelled split, with the adaptation's budget or until its loss stops
+//! falling).
 
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, bail, ensure};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{self, AdaptConfig, Adapted, Event, Positives, Selection, Threshold, VertexMatches};
+use udapose_engine::adapt::{
+    self, AdaptConfig, Adapted, Budget, Event, Label, Positives, Selection, Threshold, VertexMatches,
+};
 use udapose_engine::checkpoint::{self, Manifest, Model};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_lab::datasets::syncar::SyncarSplit;
@@ -159,11 +162,19 @@ pub struct FinetuneArgs {
     #[arg(long)]
     out: PathBuf,
     /// Backbone optimiser steps (the budget).
-    #[arg(long, conflicts_with = "budget_of")]
+    #[arg(long, conflicts_with_all = ["budget_of", "until_plateau"])]
     steps: Option<usize>,
     /// Take the budget from an adapted model's manifest (its backbone steps).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "until_plateau")]
     budget_of: Option<PathBuf>,
+    /// The strong oracle: passes over the split until a pass's mean loss is no longer 1% below
+    /// the best earlier pass's (at least --min-passes, at most --max-passes).
+    #[arg(long)]
+    until_plateau: bool,
+    #[arg(long, default_value_t = 10, requires = "until_plateau")]
+    min_passes: usize,
+    #[arg(long, default_value_t = 40, requires = "until_plateau")]
+    max_passes: usize,
     #[arg(long)]
     version: Option<String>,
     #[command(flatten)]
@@ -176,12 +187,16 @@ pub fn run_adapt(args: &AdaptArgs) -> Result<()> {
 }
 
 pub fn run_finetune(args: &FinetuneArgs) -> Result<()> {
-    let steps = match (args.steps, &args.budget_of) {
-        (Some(s), _) => s,
-        (None, Some(dir)) => backbone_steps(dir)?,
-        (None, None) => bail!("give the budget: --steps N or --budget-of ADAPTED_MODEL"),
+    let budget = match (args.steps, &args.budget_of) {
+        _ if args.until_plateau => {
+            ensure!(args.min_passes <= args.max_passes, "--min-passes is above --max-passes");
+            Budget::Plateau { min_passes: args.min_passes, max_passes: args.max_passes, tolerance: 0.01 }
+        }
+        (Some(s), _) => Budget::Steps(s),
+        (None, Some(dir)) => Budget::Steps(backbone_steps(dir)?),
+        (None, None) => bail!("give the budget: --steps N, --budget-of ADAPTED_MODEL or --until-plateau"),
     };
-    finetune_split(&args.model, &args.data, &args.out, steps, args.version.as_deref(), &args.knobs.config())?;
+    finetune_split(&args.model, &args.data, &args.out, budget, args.version.as_deref(), &args.knobs.config())?;
     Ok(())
 }
 
@@ -230,12 +245,13 @@ pub fn adapt_folder(
 }
 
 /// Fine-tunes `model` with the labels of the split directory `split_dir`
-/// (`<root>/<domain>/<split>`), `steps` backbone steps; writes `out`.
+/// (`<root>/<domain>/<split>`) for `budget`, leaving out the vertices its occluder masks cover
+/// (where it has them); writes `out`.
 pub fn finetune_split(
     model: &Path,
     split_dir: &Path,
     out: &Path,
-    steps: usize,
+    budget: Budget,
     version: Option<&str>,
     config: &AdaptConfig,
 ) -> Result<serde_json::Value> {
@@ -244,24 +260,36 @@ pub fn finetune_split(
     let source = load(model)?;
     let [h, w] = source.manifest.crop;
     let mut pixels = Vec::new();
-    let mut poses = Vec::new();
+    let mut labels = Vec::new();
     for i in 0..split.len() {
         let (p, pose, ih, iw, name) = load_sample(&split, i)?;
         if (ih, iw) != (h, w) {
             bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
         }
         pixels.extend(p);
-        poses.push(pose);
+        let occluder = split.load(i)?.annotation.occluder;
+        labels.push(Label { pose, occluded: occluder.map(|m| m.data.iter().map(|&v| v != 0).collect()) });
     }
-    let images = Tensor::from_slice(&pixels).reshape([poses.len() as i64, 3, h as i64, w as i64]);
-    eprintln!("oracle: fine-tuning {} with labels on {} images, {steps} steps", source.manifest.version, poses.len());
+    let images = Tensor::from_slice(&pixels).reshape([labels.len() as i64, 3, h as i64, w as i64]);
+    let masked = labels.iter().filter(|l| l.occluded.is_some()).count();
+    eprintln!(
+        "oracle: fine-tuning {} with labels on {} images ({masked} with occluder masks), {budget:?}",
+        source.manifest.version,
+        labels.len()
+    );
     let started = Instant::now();
-    let tuned = adapt::finetune(&source, &images, &poses, steps, config, &mut reporter(0))?;
+    let tuned = adapt::finetune(&source, &images, &labels, budget, config, &mut reporter(0))?;
     let seconds = started.elapsed().as_secs_f64();
     let summary = json!({
         "kind": "oracle",
         "data": split_dir.display().to_string(),
-        "n_images": poses.len(),
+        "n_images": labels.len(),
+        "occluder_masks": masked,
+        "budget": match budget {
+            Budget::Steps(n) => json!({ "steps": n }),
+            Budget::Plateau { min_passes, max_passes, tolerance } =>
+                json!({ "plateau": { "min_passes": min_passes, "max_passes": max_passes, "tolerance": tolerance } }),
+        },
         "seconds": seconds,
         "backbone_steps": tuned.backbone_steps,
         "rounds": tuned.rounds,

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{AdaptConfig, Threshold, fired_ratio};
+use udapose_engine::adapt::{AdaptConfig, Threshold, false_fired_matches, fired_ratio};
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
@@ -91,6 +91,9 @@ struct DomainErrors {
     errors: Vec<f64>,
     azimuths_deg: Vec<f64>,
     fired: Vec<f64>,
+    /// Matches that fire at the estimated poses, and those the labels call false.
+    fired_matches: usize,
+    false_matches: usize,
 }
 
 /// Estimates every image of `name`'s split (at most `--limit`).
@@ -103,6 +106,8 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         errors: Vec::with_capacity(n),
         azimuths_deg: Vec::with_capacity(n),
         fired: Vec::with_capacity(n),
+        fired_matches: 0,
+        false_matches: 0,
     };
     for i in 0..n {
         let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
@@ -111,12 +116,17 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         }
         let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
         let features = estimator.batch_features(&image)?;
-        let estimate = solver.solve(&features[0]);
-        let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
+        let estimate = solver.solve(&features[0]).ok();
+        let angles = estimate.as_ref().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
         out.errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
         out.azimuths_deg.push(pose.azimuth.to_degrees());
-        let (mesh, stride) = (&estimator.model.neural_mesh, solver.config.stride);
-        out.fired.push(fired_ratio(mesh, &features[0], solver.camera(), stride, &pose, threshold)?);
+        let (mesh, stride, crop) = (&estimator.model.neural_mesh, solver.config.stride, solver.camera());
+        out.fired.push(fired_ratio(mesh, &features[0], crop, stride, &pose, threshold)?);
+        if let Some(e) = estimate {
+            let (fired, wrong) = false_fired_matches(mesh, &features[0], crop, stride, &e.pose, &pose, threshold)?;
+            out.fired_matches += fired;
+            out.false_matches += wrong;
+        }
     }
     Ok(out)
 }
@@ -150,6 +160,11 @@ fn domain_entry(name: &str, d: DomainErrors) -> Result<(serde_json::Value, Strin
         entry.insert("errors_deg".into(), json!(degrees));
         entry.insert("azimuths_deg".into(), json!(d.azimuths_deg));
         entry.insert("fired_ratios".into(), json!(d.fired));
+        // At the estimated pose (the first round's pseudo-pose): the share of fired matches
+        // that the labels call false (hidden, or over a cell away from the vertex's true cell).
+        let share = d.false_matches as f64 / d.fired_matches.max(1) as f64;
+        entry.insert("fired_matches".into(), json!(d.fired_matches));
+        entry.insert("false_fired_share".into(), json!(share));
     }
     Ok((entry, row))
 }

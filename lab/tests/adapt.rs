@@ -38,7 +38,8 @@ fn digest(dir: &Path) -> Vec<(String, Vec<u8>)> {
     files
 }
 
-/// `udapose-lab report` on the quick profile, `combined` only (adapted, oracle and ablation).
+/// `udapose-lab report` on the quick profile: `combined` (adapted, both oracles and the
+/// ablation) and `corrupt/fog` (adapted and the same-budget oracle).
 fn run_report(data: &Path, source: &Path, work: &Path, out: &Path) -> (bool, String) {
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let (data, source, work, out) = (s(data), s(source), s(work), s(out));
@@ -55,6 +56,8 @@ fn run_report(data: &Path, source: &Path, work: &Path, out: &Path) -> (bool, Str
         "--domains",
         "combined,corrupt/fog",
         "--ablation",
+        "combined",
+        "--strong",
         "combined",
         "--out",
         &out,
@@ -74,7 +77,7 @@ fn quick_report_adapts_combined_without_collapsing() {
     let report = read(&out);
     assert_eq!(report["profile"], "quick");
     let d = &report["domains"]["combined"];
-    for v in ["source", "adapted", "oracle", "global_filter"] {
+    for v in ["source", "adapted", "oracle", "strong_oracle", "global_filter"] {
         let m = &d[v];
         assert_eq!(m["n"], 60, "{v}");
         for k in ["acc_pi_6", "acc_pi_18", "med_err_deg"] {
@@ -131,9 +134,18 @@ fn quick_report_adapts_combined_without_collapsing() {
     );
     assert_eq!(manifest["training"]["source_version"], read(&source.join("manifest.json"))["version"]);
 
-    // The oracle had the adaptation's budget.
+    // The oracle had the adaptation's budget; the strong one at least 10 passes, and gap closed
+    // against it is computed as against the other.
     let oracle = read(&work.join("oracle/combined/manifest.json"));
     assert_eq!(oracle["training"]["backbone_steps"], manifest["training"]["backbone_steps"]);
+    let strong = read(&work.join("strong_oracle/combined/manifest.json"));
+    assert!(strong["training"]["run"]["rounds"].as_array().unwrap().len() >= 10, "{}", strong["training"]);
+    let strong_gap = acc("strong_oracle") - acc("source");
+    match d["gap_closed_strong"].as_f64() {
+        Some(closed) => assert!((closed - (acc("adapted") - acc("source")) / strong_gap).abs() < 1e-9),
+        None => assert!(strong_gap < 0.05, "strong oracle gains {strong_gap:.3} but no gap closed"),
+    }
+    assert!(report["domains"]["corrupt/fog"]["strong_oracle"].is_null(), "fog has no strong oracle here");
 
     let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
     assert!(md.contains("| combined |") && md.contains("gap closed"));
@@ -174,7 +186,11 @@ fn adapt_and_finetune_explain_bad_arguments() {
 
     let split = data.join("combined/adapt");
     let (ok, log) = lab(&["finetune", "--model", s, "--data", split.to_str().unwrap(), "--out", o]);
-    assert!(!ok && log.contains("--steps N or --budget-of"), "{log}");
+    assert!(!ok && log.contains("--steps N, --budget-of ADAPTED_MODEL or --until-plateau"), "{log}");
+    let plateau = ["--until-plateau", "--min-passes", "5", "--max-passes", "4"];
+    let (ok, log) =
+        lab(&[&["finetune", "--model", s, "--data", split.to_str().unwrap(), "--out", o], &plateau[..]].concat());
+    assert!(!ok && log.contains("--min-passes is above --max-passes"), "{log}");
     let (ok, log) = lab(&["finetune", "--model", s, "--data", dir.to_str().unwrap(), "--out", o, "--steps", "1"]);
     assert!(!ok && log.contains("not a split directory"), "{log}");
     assert!(!out.exists());

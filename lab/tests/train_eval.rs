@@ -70,6 +70,14 @@ fn eval_reports_every_requested_domain() {
         assert_eq!(errors.len(), 20);
         assert_eq!(acc(d), errors.iter().filter(|&&e| e < 30.0).count() as f64 / 20.0, "{d}");
     }
+    // Fired matches at the estimated poses, judged by the labels: more of them are false where
+    // the poses are wrong more often.
+    let false_share = |d: &str| report["domains"][d]["false_fired_share"].as_f64().unwrap();
+    for d in ["source", "occ-l2"] {
+        assert!(report["domains"][d]["fired_matches"].as_u64().unwrap() > 0, "{d}");
+        assert!((0.0..=1.0).contains(&false_share(d)), "{d}");
+    }
+    assert!(false_share("occ-l2") > false_share("source"), "{} vs {}", false_share("occ-l2"), false_share("source"));
     // Measured 0.70 (source) and 0.20 (occ-l2) on these 20 images; chance is under 0.01.
     assert!(acc("source") >= 0.4 && acc("source") > acc("occ-l2"), "source {} occ-l2 {}", acc("source"), acc("occ-l2"));
     let md = std::fs::read_to_string(out.with_extension("md")).unwrap();

@@ -29,8 +29,8 @@ use crate::train::{SourceTraining, TrainConfig, VisibleVertices, visible_vertice
 mod fire;
 mod run;
 
-pub use fire::fired_ratio;
 use fire::*;
+pub use fire::{false_fired_matches, fired_ratio};
 use run::Run;
 
 /// Which per-vertex cosine a feature must exceed to *fire* (METHOD.md §7.3).
@@ -276,37 +276,93 @@ pub fn adapt(
     Run::new(source, images, config)?.em(progress)
 }
 
-/// The oracle: the same loop with the ground-truth `poses` as pseudo-poses, every visible vertex
-/// a positive and `C` trained by its momentum bank (METHOD.md §5), for exactly
-/// `backbone_steps` optimiser steps of `config.batch` images (the adaptation's budget).
+/// A labelled image of the oracle: its ground-truth pose and, where the data knows it, which
+/// crop pixels an occluder covers (`H·W`, row-major), so that occluded vertices are not trained
+/// as positives.
+#[derive(Clone, Debug)]
+pub struct Label {
+    pub pose: Pose,
+    pub occluded: Option<Vec<bool>>,
+}
+
+/// How long the oracle trains.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Budget {
+    /// Exactly this many optimiser steps: the adaptation's own budget (the same-budget oracle).
+    Steps(usize),
+    /// Passes over the images until the pass's mean loss stops falling (the strong oracle): at
+    /// least `min_passes`, at most `max_passes`; after `min_passes`, a pass whose loss is not
+    /// below `(1 − tolerance)` times the best earlier pass's ends the run.
+    Plateau { min_passes: usize, max_passes: usize, tolerance: f64 },
+}
+
+impl Budget {
+    /// Whether the run stops after a pass, given every pass's mean loss so far.
+    fn done(&self, steps: usize, losses: &[f64]) -> bool {
+        match *self {
+            Budget::Steps(n) => steps >= n,
+            Budget::Plateau { min_passes, max_passes, tolerance } => {
+                let Some((last, earlier)) = losses.split_last() else { return false };
+                let best = earlier.iter().copied().fold(f64::INFINITY, f64::min);
+                losses.len() >= max_passes || (losses.len() >= min_passes && *last >= (1.0 - tolerance) * best)
+            }
+        }
+    }
+}
+
+/// The oracle: the same loop with the ground-truth poses as pseudo-poses, every visible and
+/// unoccluded vertex a positive and `C` trained by its momentum bank (METHOD.md §5), for the
+/// `budget` in optimiser steps of `config.batch` images.
 pub fn finetune(
     source: &Model,
     images: &Tensor,
-    poses: &[Pose],
-    backbone_steps: usize,
+    labels: &[Label],
+    budget: Budget,
     config: &AdaptConfig,
     progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
 ) -> Result<Adapted> {
     let mut run = Run::new(source, images, config)?;
     run.target_batchnorm()?;
-    if poses.len() != run.n {
-        return Err(EngineError::InvalidInput(format!("{} poses for {} images", poses.len(), run.n)));
+    if labels.len() != run.n {
+        return Err(EngineError::InvalidInput(format!("{} poses for {} images", labels.len(), run.n)));
     }
-    let targets: Vec<Option<VisibleVertices>> = poses
+    let pixels = run.crop.height * run.crop.width;
+    let targets: Vec<Option<VisibleVertices>> = labels
         .iter()
-        .map(|p| visible_vertices(&mut run.raster, &run.mesh, &run.crop, config.solver.stride, p).map(Some))
+        .map(|label| {
+            let visible = visible_vertices(&mut run.raster, &run.mesh, &run.crop, config.solver.stride, &label.pose)?;
+            Ok(Some(match &label.occluded {
+                Some(o) if o.len() != pixels => {
+                    return Err(EngineError::InvalidInput(format!(
+                        "an occluder mask of {} pixels for a {}×{} crop",
+                        o.len(),
+                        run.crop.height,
+                        run.crop.width
+                    )));
+                }
+                Some(o) => visible.without_occluded(o, run.crop.width),
+                None => visible,
+            }))
+        })
         .collect::<Result<_>>()?;
     let mut training = run.training();
     let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&run.vs, config.lr).map_err(tch_err)?;
-    let (mut steps, mut round) = (0, 0);
-    while steps < backbone_steps {
-        round += 1;
+    let (mut steps, mut losses) = (0, Vec::new());
+    while !budget.done(steps, &losses) {
+        let round = losses.len() + 1;
         let started = Instant::now();
-        let left = backbone_steps - steps;
+        let left = match budget {
+            Budget::Steps(n) => n - steps,
+            Budget::Plateau { .. } => usize::MAX,
+        };
         let (loss, taken) =
             run.backbone_pass(&mut training, &mut opt, &targets, true, left, &mut rng, round, progress)?;
+        if taken == 0 {
+            return Err(EngineError::InvalidInput("no labelled image shows a visible vertex".into()));
+        }
         steps += taken;
+        losses.push(loss);
         let report = RoundReport {
             round,
             backbone_loss: Some(loss),
@@ -322,5 +378,5 @@ pub fn finetune(
     run.c = to_host(&training.vertex_features)?;
     run.clutter = to_host(&estimator::clutter_mean(&training.clutter))?;
     run.steps = steps;
-    run.finish(false, vec![None; poses.len()], vec![0.0; poses.len()])
+    run.finish(false, vec![None; labels.len()], vec![0.0; labels.len()])
 }

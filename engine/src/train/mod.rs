@@ -70,6 +70,23 @@ pub struct VisibleVertices {
     pub projected: Vec<[f64; 2]>,
 }
 
+impl VisibleVertices {
+    /// Drops the vertices whose projection lands on a pixel an occluder covers (`occluded`:
+    /// crop pixels, row-major, `width` per row): a ground-truth pose places them, but their
+    /// cells show the occluder, so training them as positives teaches the wrong feature.
+    pub fn without_occluded(mut self, occluded: &[bool], width: usize) -> VisibleVertices {
+        let covered = |v: i64| {
+            let [x, y] = self.projected[v as usize];
+            let (col, row) = (x.max(0.0) as usize, y.max(0.0) as usize);
+            col < width && occluded.get(row * width + col).copied().unwrap_or(false)
+        };
+        let (vertices, cells) =
+            self.vertices.iter().zip(&self.cells).filter(|&(&v, _)| !covered(v)).map(|(&v, &c)| (v, c)).unzip();
+        (self.vertices, self.cells) = (vertices, cells);
+        self
+    }
+}
+
 /// Projects the mesh with a ground-truth pose and finds the visible vertices' feature cells.
 pub fn visible_vertices(
     raster: &mut Rasterizer,
