@@ -223,10 +223,14 @@ fn fired_matches_are_false_only_away_from_the_true_pose() {
     let features = udapose_engine::estimator::Features { data: vec![0.1; dim * h * w], dim, height: h, width: w };
     let truth = Pose::new(0.4, 0.2, 0.0, 5.0);
     // A threshold every cosine passes: every visible vertex fires.
-    let count = |pseudo: &Pose| {
-        adapt::false_fired_matches(&source.neural_mesh, &features, &camera, 8, pseudo, &truth, Threshold::Fixed(-2.0))
-            .unwrap()
+    let firing = adapt::FiringTest {
+        neural_mesh: &source.neural_mesh,
+        crop: &camera,
+        stride: 8,
+        threshold: Threshold::Fixed(-2.0),
     };
+    let count = |pseudo: &Pose| firing.false_matches(&features, pseudo, &truth).unwrap();
+    assert_eq!(firing.fired_ratio(&features, &truth).unwrap(), 1.0);
     let (fired, wrong) = count(&truth);
     assert!(fired > 10 && wrong == 0, "at the true pose: {wrong} of {fired} false");
     let (fired, wrong) = count(&Pose::new(0.4 + std::f64::consts::PI, 0.2, 0.0, 5.0));

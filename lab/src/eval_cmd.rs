@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
-use udapose_engine::adapt::{AdaptConfig, Threshold, false_fired_matches, fired_ratio};
+use udapose_engine::adapt::{AdaptConfig, FiringTest, Threshold};
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
@@ -109,6 +109,12 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         fired_matches: 0,
         false_matches: 0,
     };
+    let firing = FiringTest {
+        neural_mesh: &estimator.model.neural_mesh,
+        crop: solver.camera(),
+        stride: solver.config.stride,
+        threshold,
+    };
     for i in 0..n {
         let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
         if (ih, iw) != (h, w) {
@@ -120,10 +126,9 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         let angles = estimate.as_ref().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
         out.errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
         out.azimuths_deg.push(pose.azimuth.to_degrees());
-        let (mesh, stride, crop) = (&estimator.model.neural_mesh, solver.config.stride, solver.camera());
-        out.fired.push(fired_ratio(mesh, &features[0], crop, stride, &pose, threshold)?);
+        out.fired.push(firing.fired_ratio(&features[0], &pose)?);
         if let Some(e) = estimate {
-            let (fired, wrong) = false_fired_matches(mesh, &features[0], crop, stride, &e.pose, &pose, threshold)?;
+            let (fired, wrong) = firing.false_matches(&features[0], &e.pose, &pose)?;
             out.fired_matches += fired;
             out.false_matches += wrong;
         }

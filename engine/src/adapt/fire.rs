@@ -2,66 +2,54 @@
 
 use super::*;
 
-/// The share of an image's visible vertices (at `pose`) whose feature fires against `model`'s
-/// vertex features and thresholds: the diagnostic the paper plots by azimuth.
-pub fn fired_ratio(
-    neural_mesh: &NeuralMesh,
-    features: &Features,
-    crop: &Camera,
-    stride: usize,
-    pose: &Pose,
-    threshold: Threshold,
-) -> Result<f64> {
-    let (visible, fired) = fired_at(neural_mesh, features, crop, stride, pose, threshold)?;
-    Ok(fired.iter().filter(|&&f| f).count() as f64 / visible.vertices.len().max(1) as f64)
+/// A model's firing test (METHOD.md §7.3) as a diagnostic against labels.
+pub struct FiringTest<'a> {
+    pub neural_mesh: &'a NeuralMesh,
+    pub crop: &'a Camera,
+    pub stride: usize,
+    pub threshold: Threshold,
 }
 
-/// The matches that fire at a `pseudo` pose, judged by the `truth`: `(fired, false)`, where a
-/// match is false when its vertex is hidden at the true pose or lands more than one feature cell
-/// from the matched cell (what the paper counts as false positives, about 2% of fired matches).
-pub fn false_fired_matches(
-    neural_mesh: &NeuralMesh,
-    features: &Features,
-    crop: &Camera,
-    stride: usize,
-    pseudo: &Pose,
-    truth: &Pose,
-    threshold: Threshold,
-) -> Result<(usize, usize)> {
-    let (visible, fired) = fired_at(neural_mesh, features, crop, stride, pseudo, threshold)?;
-    let true_cells: std::collections::HashMap<i64, i64> = {
-        let t = visible_vertices(&mut Rasterizer::new(), &neural_mesh.mesh, crop, stride, truth)?;
-        t.vertices.into_iter().zip(t.cells).collect()
-    };
-    let width = crop.at_stride(stride)?.width as i64;
-    let near = |a: i64, b: i64| (a / width - b / width).abs() <= 1 && (a % width - b % width).abs() <= 1;
-    let matches = visible.vertices.iter().zip(&visible.cells).zip(&fired).filter(|(_, f)| **f);
-    let (mut total, mut wrong) = (0, 0);
-    for ((v, &cell), _) in matches {
-        total += 1;
-        wrong += usize::from(!true_cells.get(v).is_some_and(|&t| near(t, cell)));
+impl FiringTest<'_> {
+    /// The share of an image's visible vertices (at `pose`) whose feature fires: the
+    /// diagnostic the paper plots by azimuth.
+    pub fn fired_ratio(&self, features: &Features, pose: &Pose) -> Result<f64> {
+        let (visible, fired) = self.fired_at(features, pose)?;
+        Ok(fired.iter().filter(|&&f| f).count() as f64 / visible.vertices.len().max(1) as f64)
     }
-    Ok((total, wrong))
-}
 
-/// The visible vertices at `pose` and which of them fire.
-fn fired_at(
-    neural_mesh: &NeuralMesh,
-    features: &Features,
-    crop: &Camera,
-    stride: usize,
-    pose: &Pose,
-    threshold: Threshold,
-) -> Result<(VisibleVertices, Vec<bool>)> {
-    let visible = visible_vertices(&mut Rasterizer::new(), &neural_mesh.mesh, crop, stride, pose)?;
-    let dim = neural_mesh.vertex_features.size()[1] as usize;
-    let c = to_host(&neural_mesh.vertex_features)?;
-    let tau = match threshold {
-        Threshold::Source => to_host(&neural_mesh.tau)?,
-        Threshold::Fixed(t) => vec![t as f32; neural_mesh.tau.size()[0] as usize],
-    };
-    let fired = fires(&visible, features, &c, &tau, dim);
-    Ok((visible, fired))
+    /// The matches that fire at a `pseudo` pose, judged by the `truth`: `(fired, false)`, where
+    /// a match is false when its vertex is hidden at the true pose or lands more than one
+    /// feature cell from the matched cell (the paper's false positives, about 2% of its fired
+    /// matches).
+    pub fn false_matches(&self, features: &Features, pseudo: &Pose, truth: &Pose) -> Result<(usize, usize)> {
+        let (visible, fired) = self.fired_at(features, pseudo)?;
+        let t = visible_vertices(&mut Rasterizer::new(), &self.neural_mesh.mesh, self.crop, self.stride, truth)?;
+        let true_cells: std::collections::HashMap<i64, i64> = t.vertices.into_iter().zip(t.cells).collect();
+        let width = self.crop.at_stride(self.stride)?.width as i64;
+        let near = |a: i64, b: i64| (a / width - b / width).abs() <= 1 && (a % width - b % width).abs() <= 1;
+        let matches = visible.vertices.iter().zip(&visible.cells).zip(&fired).filter(|(_, f)| **f);
+        let (mut total, mut wrong) = (0, 0);
+        for ((v, &cell), _) in matches {
+            total += 1;
+            wrong += usize::from(!true_cells.get(v).is_some_and(|&t| near(t, cell)));
+        }
+        Ok((total, wrong))
+    }
+
+    /// The visible vertices at `pose` and which of them fire.
+    fn fired_at(&self, features: &Features, pose: &Pose) -> Result<(VisibleVertices, Vec<bool>)> {
+        let mesh = self.neural_mesh;
+        let visible = visible_vertices(&mut Rasterizer::new(), &mesh.mesh, self.crop, self.stride, pose)?;
+        let dim = mesh.vertex_features.size()[1] as usize;
+        let c = to_host(&mesh.vertex_features)?;
+        let tau = match self.threshold {
+            Threshold::Source => to_host(&mesh.tau)?,
+            Threshold::Fixed(t) => vec![t as f32; mesh.tau.size()[0] as usize],
+        };
+        let fired = fires(&visible, features, &c, &tau, dim);
+        Ok((visible, fired))
+    }
 }
 
 /// Which visible vertices fire: `f·C_r > τ_r` (METHOD.md §7.3).

@@ -29,8 +29,8 @@ use crate::train::{SourceTraining, TrainConfig, VisibleVertices, visible_vertice
 mod fire;
 mod run;
 
+pub use fire::FiringTest;
 use fire::*;
-pub use fire::{false_fired_matches, fired_ratio};
 use run::Run;
 
 /// Which per-vertex cosine a feature must exceed to *fire* (METHOD.md §7.3).
