@@ -223,12 +223,7 @@ fn fired_matches_are_false_only_away_from_the_true_pose() {
     let features = udapose_engine::estimator::Features { data: vec![0.1; dim * h * w], dim, height: h, width: w };
     let truth = Pose::new(0.4, 0.2, 0.0, 5.0);
     // A threshold every cosine passes: every visible vertex fires.
-    let firing = adapt::FiringTest {
-        neural_mesh: &source.neural_mesh,
-        crop: &camera,
-        stride: 8,
-        threshold: Threshold::Fixed(-2.0),
-    };
+    let firing = adapt::FiringTest::new(&source.neural_mesh, &camera, 8, Threshold::Fixed(-2.0)).unwrap();
     let count = |pseudo: &Pose| firing.false_matches(&features, pseudo, &truth).unwrap();
     assert_eq!(firing.fired_ratio(&features, &truth).unwrap(), 1.0);
     let (fired, wrong) = count(&truth);

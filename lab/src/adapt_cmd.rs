@@ -16,7 +16,7 @@ use udapose_engine::adapt::{
 use udapose_engine::checkpoint::{self, Manifest, Model};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::{load_image_folder, load_sample};
+use udapose_lab::loader::{load_annotated, load_image_folder};
 
 /// Settings shared by `adapt` and `finetune` (defaults: [`AdaptConfig::default`]).
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -262,13 +262,14 @@ pub fn finetune_split(
     let mut pixels = Vec::new();
     let mut labels = Vec::new();
     for i in 0..split.len() {
-        let (p, pose, ih, iw, name) = load_sample(&split, i)?;
+        let (p, a, name) = load_annotated(&split, i)?;
+        let (ih, iw) = (a.pose.height, a.pose.width);
         if (ih, iw) != (h, w) {
             bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
         }
         pixels.extend(p);
-        let occluder = split.load(i)?.annotation.occluder;
-        labels.push(Label { pose, occluded: occluder.map(|m| m.data.iter().map(|&v| v != 0).collect()) });
+        let occluded = a.occluder.map(|m| m.data.iter().map(|&v| v != 0).collect());
+        labels.push(Label { pose: a.pose.pose(), occluded });
     }
     let images = Tensor::from_slice(&pixels).reshape([labels.len() as i64, 3, h as i64, w as i64]);
     let masked = labels.iter().filter(|l| l.occluded.is_some()).count();

@@ -109,12 +109,7 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         fired_matches: 0,
         false_matches: 0,
     };
-    let firing = FiringTest {
-        neural_mesh: &estimator.model.neural_mesh,
-        crop: solver.camera(),
-        stride: solver.config.stride,
-        threshold,
-    };
+    let firing = FiringTest::new(&estimator.model.neural_mesh, solver.camera(), solver.config.stride, threshold)?;
     for i in 0..n {
         let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
         if (ih, iw) != (h, w) {

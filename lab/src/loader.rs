@@ -11,7 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use udapose_engine::Pose;
 
-use crate::datasets::syncar::SyncarSplit;
+use crate::datasets::syncar::{Annotation, SyncarSplit};
 
 /// One batch: images as RGB `f32` in [0, 1], N×3×H×W (channel-major, as a network takes them).
 pub struct Batch {
@@ -34,15 +34,21 @@ impl Batch {
 
 /// Decodes one sample: its image as planar RGB in [0, 1] and its ground-truth pose.
 pub fn load_sample(split: &SyncarSplit, index: usize) -> Result<(Vec<f32>, Pose, usize, usize, String)> {
+    let (pixels, a, name) = load_annotated(split, index)?;
+    Ok((pixels, a.pose.pose(), a.pose.height, a.pose.width, name))
+}
+
+/// Decodes one sample: its image as planar RGB in [0, 1], its whole annotation and its name.
+pub fn load_annotated(split: &SyncarSplit, index: usize) -> Result<(Vec<f32>, Annotation, String)> {
     let sample = split.load(index)?;
     let path = &sample.entry.image_path;
     let img = image::open(path).with_context(|| format!("decoding {}", path.display()))?.to_rgb8();
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let pose = sample.annotation.pose;
+    let pose = &sample.annotation.pose;
     if (pose.height, pose.width) != (h, w) {
         bail!("{}: image is {w}x{h}, annotation says {}x{}", path.display(), pose.width, pose.height);
     }
-    Ok((planar(&img), pose.pose(), h, w, sample.entry.name))
+    Ok((planar(&img), sample.annotation, sample.entry.name))
 }
 
 /// RGB8 pixels as planar `f32` in [0, 1] (3×H×W, channel-major).

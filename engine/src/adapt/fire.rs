@@ -2,15 +2,27 @@
 
 use super::*;
 
-/// A model's firing test (METHOD.md §7.3) as a diagnostic against labels.
+/// A model's firing test (METHOD.md §7.3) as a diagnostic against labels, with the vertex
+/// features and thresholds on the host once for every image it judges.
 pub struct FiringTest<'a> {
-    pub neural_mesh: &'a NeuralMesh,
-    pub crop: &'a Camera,
-    pub stride: usize,
-    pub threshold: Threshold,
+    mesh: &'a Mesh,
+    crop: &'a Camera,
+    stride: usize,
+    c: Vec<f32>,
+    tau: Vec<f32>,
+    dim: usize,
 }
 
-impl FiringTest<'_> {
+impl<'a> FiringTest<'a> {
+    pub fn new(neural_mesh: &'a NeuralMesh, crop: &'a Camera, stride: usize, threshold: Threshold) -> Result<Self> {
+        let tau = match threshold {
+            Threshold::Source => to_host(&neural_mesh.tau)?,
+            Threshold::Fixed(t) => vec![t as f32; neural_mesh.tau.size()[0] as usize],
+        };
+        let (c, dim) = (to_host(&neural_mesh.vertex_features)?, neural_mesh.vertex_features.size()[1] as usize);
+        Ok(FiringTest { mesh: &neural_mesh.mesh, crop, stride, c, tau, dim })
+    }
+
     /// The share of an image's visible vertices (at `pose`) whose feature fires: the
     /// diagnostic the paper plots by azimuth.
     pub fn fired_ratio(&self, features: &Features, pose: &Pose) -> Result<f64> {
@@ -24,7 +36,7 @@ impl FiringTest<'_> {
     /// matches).
     pub fn false_matches(&self, features: &Features, pseudo: &Pose, truth: &Pose) -> Result<(usize, usize)> {
         let (visible, fired) = self.fired_at(features, pseudo)?;
-        let t = visible_vertices(&mut Rasterizer::new(), &self.neural_mesh.mesh, self.crop, self.stride, truth)?;
+        let t = visible_vertices(&mut Rasterizer::new(), self.mesh, self.crop, self.stride, truth)?;
         let true_cells: std::collections::HashMap<i64, i64> = t.vertices.into_iter().zip(t.cells).collect();
         let width = self.crop.at_stride(self.stride)?.width as i64;
         let near = |a: i64, b: i64| (a / width - b / width).abs() <= 1 && (a % width - b % width).abs() <= 1;
@@ -39,15 +51,8 @@ impl FiringTest<'_> {
 
     /// The visible vertices at `pose` and which of them fire.
     fn fired_at(&self, features: &Features, pose: &Pose) -> Result<(VisibleVertices, Vec<bool>)> {
-        let mesh = self.neural_mesh;
-        let visible = visible_vertices(&mut Rasterizer::new(), &mesh.mesh, self.crop, self.stride, pose)?;
-        let dim = mesh.vertex_features.size()[1] as usize;
-        let c = to_host(&mesh.vertex_features)?;
-        let tau = match self.threshold {
-            Threshold::Source => to_host(&mesh.tau)?,
-            Threshold::Fixed(t) => vec![t as f32; mesh.tau.size()[0] as usize],
-        };
-        let fired = fires(&visible, features, &c, &tau, dim);
+        let visible = visible_vertices(&mut Rasterizer::new(), self.mesh, self.crop, self.stride, pose)?;
+        let fired = fires(&visible, features, &self.c, &self.tau, self.dim);
         Ok((visible, fired))
     }
 }

@@ -326,21 +326,17 @@ pub fn finetune(
     if labels.len() != run.n {
         return Err(EngineError::InvalidInput(format!("{} poses for {} images", labels.len(), run.n)));
     }
-    let pixels = run.crop.height * run.crop.width;
+    let (height, width) = (run.crop.height, run.crop.width);
+    if let Some(o) = labels.iter().filter_map(|l| l.occluded.as_ref()).find(|o| o.len() != height * width) {
+        let n = o.len();
+        return Err(EngineError::InvalidInput(format!("an occluder mask of {n} pixels for a {height}×{width} crop")));
+    }
     let targets: Vec<Option<VisibleVertices>> = labels
         .iter()
         .map(|label| {
             let visible = visible_vertices(&mut run.raster, &run.mesh, &run.crop, config.solver.stride, &label.pose)?;
             Ok(Some(match &label.occluded {
-                Some(o) if o.len() != pixels => {
-                    return Err(EngineError::InvalidInput(format!(
-                        "an occluder mask of {} pixels for a {}×{} crop",
-                        o.len(),
-                        run.crop.height,
-                        run.crop.width
-                    )));
-                }
-                Some(o) => visible.without_occluded(o, run.crop.width),
+                Some(o) => visible.without_occluded(o, width),
                 None => visible,
             }))
         })

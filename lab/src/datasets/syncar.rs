@@ -100,17 +100,7 @@ impl Annotation {
             height: size(npz, "height")?,
             width: size(npz, "width")?,
         };
-        let crop_mask = |key: &str| -> Result<Mask, NpyError> {
-            let mask = mask_from(npz, key)?;
-            if (mask.height, mask.width) != (pose.height, pose.width) {
-                return Err(NpyError::WrongType {
-                    key: key.into(),
-                    expected: "a mask of height × width",
-                    found: format!("{}×{} for a {}×{} crop", mask.height, mask.width, pose.height, pose.width),
-                });
-            }
-            Ok(mask)
-        };
+        let crop_mask = |key: &str| mask_from(npz, key).and_then(|m| crop_sized(m, key, &pose));
         let mask = crop_mask("mask")?;
         let occ_fraction = npz.contains("occ_fraction").then(|| npz.f64_scalar("occ_fraction")).transpose()?;
         let occluder = npz.contains("occluder").then(|| crop_mask("occluder")).transpose()?;
@@ -128,6 +118,12 @@ impl Annotation {
 
 /// A mask as the npz's `|u1 (H, W)` array, refused unless it has the crop's size.
 fn full_size(mask: &Mask, key: &str, p: &CropPose) -> Result<NpyArray, NpyError> {
+    let mask = crop_sized(mask.clone(), key, p)?;
+    NpyArray::new(vec![p.height, p.width], NpyData::U8(mask.data))
+}
+
+/// `mask`, refused unless it is `height × width` of the crop.
+fn crop_sized(mask: Mask, key: &str, p: &CropPose) -> Result<Mask, NpyError> {
     if (mask.height, mask.width) != (p.height, p.width) {
         return Err(NpyError::WrongType {
             key: key.into(),
@@ -135,7 +131,7 @@ fn full_size(mask: &Mask, key: &str, p: &CropPose) -> Result<NpyArray, NpyError>
             found: format!("{}×{} for a {}×{} crop", mask.height, mask.width, p.height, p.width),
         });
     }
-    NpyArray::new(vec![p.height, p.width], NpyData::U8(mask.data.clone()))
+    Ok(mask)
 }
 
 /// Writes one annotation (atomically: temporary file, then rename).
