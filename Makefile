@@ -52,7 +52,7 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test test-build build venv lite-weights assets browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build venv lite-weights assets assets-all browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -106,6 +106,14 @@ assets:
 	@if [ ! -d $(TORCS_DIR)/cars ] || ! command -v assimp >/dev/null; then \
 		echo "installing Debian packages torcs-data and assimp-utils"; \
 		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends torcs-data assimp-utils; \
+	fi
+
+# The other categories' models (issue: more than cars): FlightGear's aircraft and buses (a 1.3 GB
+# package) and Sweet Home 3D's furniture libraries. For `synth --category`; no test needs them.
+assets-all: assets
+	@if [ ! -d /usr/share/games/flightgear/Scenery/Models/Aircraft ] || [ ! -d /usr/share/sweethome3d/furniture ]; then \
+		echo "installing Debian packages flightgear-data-base and sweethome3d-furniture (~1.5 GB)"; \
+		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends flightgear-data-base sweethome3d-furniture; \
 	fi
 
 # Headless Chromium and its WebDriver for the web page's end-to-end test (tests/tests/web.rs).

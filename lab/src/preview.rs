@@ -22,6 +22,14 @@ pub fn draw_cuboid(img: &mut RgbImage, cuboid: &Cuboid, pose: &Pose, colour: [u8
     }
 }
 
+/// The segment between two object-frame points seen from `pose`.
+pub fn draw_segment(img: &mut RgbImage, a: [f64; 3], b: [f64; 3], pose: &Pose, colour: [u8; 3]) {
+    let Ok(camera) = Camera::for_crop(img.height() as usize, img.width() as usize) else { return };
+    let Ok(view) = View::new(&camera, pose) else { return };
+    let (p, q) = (view.project(a), view.project(b));
+    draw_line(img, [p[0], p[1]], [q[0], q[1]], colour);
+}
+
 /// A line between continuous pixel coordinates, clipped to the image.
 pub fn draw_line(img: &mut RgbImage, a: [f64; 2], b: [f64; 2], colour: [u8; 3]) {
     let steps = ((b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil() as usize).clamp(1, 1 << 14);

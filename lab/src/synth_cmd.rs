@@ -7,10 +7,11 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde_json::json;
-use udapose_lab::assets::{Assets, DEFAULT_TORCS_DIR, SHAPE_CARS, SOURCE_CARS};
+use udapose_lab::assets::category::Category;
+use udapose_lab::assets::{Assets, DEFAULT_TORCS_DIR};
 use udapose_lab::atomic::write_atomic;
 use udapose_lab::datasets::syncar::{SplitPaths, write_syncar_annotation, write_syncar_list};
-use udapose_lab::preview::{contact_sheet, draw_cuboid};
+use udapose_lab::preview::{contact_sheet, draw_cuboid, draw_segment};
 use udapose_lab::render::Renderer;
 use udapose_lab::synth::{self, Domain, Profile, Sample, World, all_domains};
 
@@ -19,6 +20,9 @@ pub struct Args {
     /// Size of the benchmark: quick (tests), standard (reported numbers on CPU), full (GPU).
     #[arg(long, value_enum, default_value = "quick")]
     profile: Profile,
+    /// The object category (all but car need `make assets-all`).
+    #[arg(long, value_enum, default_value = "car")]
+    category: Category,
     /// Output root (required unless --preview).
     #[arg(long, required_unless_present = "preview")]
     out: Option<PathBuf>,
@@ -31,6 +35,10 @@ pub struct Args {
     /// Write per-domain contact sheets with the ground-truth cuboid instead of a dataset.
     #[arg(long)]
     preview: bool,
+    /// With --preview: also an orientation sheet, a row per model (4 azimuths, the canonical
+    /// front marked), to check each model's front.
+    #[arg(long, requires = "preview")]
+    orientation: bool,
     /// Where --preview writes its sheets.
     #[arg(long, default_value = "reports/syncar-preview")]
     preview_dir: PathBuf,
@@ -40,6 +48,12 @@ pub struct Args {
     /// TORCS data directory (Debian package torcs-data).
     #[arg(long, default_value = DEFAULT_TORCS_DIR)]
     torcs: PathBuf,
+    /// FlightGear data directory (Debian package flightgear-data-base): aeroplanes and buses.
+    #[arg(long, default_value = udapose_lab::assets::flightgear::DEFAULT_DIR)]
+    flightgear: PathBuf,
+    /// Sweet Home 3D furniture libraries (Debian package sweethome3d-furniture).
+    #[arg(long, default_value = udapose_lab::assets::sweethome::DEFAULT_DIR)]
+    sweethome: PathBuf,
     /// Cache of converted meshes (default: $UDAPOSE_CACHE/assets, or ~/.cache/udapose/assets).
     #[arg(long)]
     asset_cache: Option<PathBuf>,
@@ -47,19 +61,28 @@ pub struct Args {
 
 pub fn run(args: &Args) -> Result<()> {
     let cache = args.asset_cache.clone().unwrap_or_else(default_asset_cache);
-    let assets = Assets::open(&args.torcs, &cache)?;
+    let mut assets = Assets::open(&args.torcs, &cache)?;
+    assets.flightgear.clone_from(&args.flightgear);
+    assets.sweethome.clone_from(&args.sweethome);
     let started = Instant::now();
     let (height, width) = args.profile.crop();
-    let world = World::load(&assets, height).context("loading cars and backgrounds")?;
+    let category = args.category.name();
+    let world = World::load(&assets, args.category, height)
+        .with_context(|| format!("loading the {category} models and backgrounds"))?;
     eprintln!(
-        "loaded {} cars, {} source and {} context backgrounds in {:.1} s",
-        world.cars.len(),
+        "loaded {} {category} models ({} source, {} shape), {} source and {} context backgrounds in {:.1} s",
+        world.models.len(),
+        world.catalogue.source.len(),
+        world.catalogue.shape.len(),
         world.backgrounds.source.len(),
         world.backgrounds.context.len(),
         started.elapsed().as_secs_f64()
     );
     let domains = selected(&args.domains)?;
     if args.preview {
+        if args.orientation {
+            orientation_sheets(&world, args)?;
+        }
         return preview(&world, args, &domains);
     }
     let out = args.out.as_ref().expect("clap requires --out without --preview");
@@ -105,7 +128,7 @@ fn selected(names: &[String]) -> Result<Vec<Domain>> {
 
 /// Renders one split (skipping samples already written) and writes its list.
 fn generate_split(world: &World, args: &Args, domain: &Domain, split: &str, out: &Path) -> Result<()> {
-    let dirs = SplitPaths::new(out, &domain.name, split);
+    let dirs = SplitPaths::of_category(out, &domain.name, split, args.category.name());
     dirs.create().with_context(|| format!("creating {}", dirs.images.display()))?;
     let n = args.profile.count(split);
     let bar = ProgressBar::new(n as u64).with_style(
@@ -167,10 +190,16 @@ fn write_manifest(out: &Path, args: &Args, world: &World, domains: &[Domain]) ->
         "seed": args.seed,
         "crop": {"height": height, "width": width, "viewport": 3000.0 * height as f64 / 256.0},
         "counts": counts,
-        "cars": {"source": SOURCE_CARS, "shape": SHAPE_CARS},
+        "category": args.category,
+        "models": {"source": world.catalogue.source, "shape": world.catalogue.shape},
         "cuboid": {"min": world.cuboid.min, "max": world.cuboid.max},
         "backgrounds": {"source": world.backgrounds.source.len(), "context": world.backgrounds.context.len()},
-        "assets": {"torcs-data": package_version("torcs-data"), "assimp-utils": package_version("assimp-utils")},
+        "assets": {
+            "torcs-data": package_version("torcs-data"),
+            "assimp-utils": package_version("assimp-utils"),
+            "flightgear-data-base": package_version("flightgear-data-base"),
+            "sweethome3d-furniture": package_version("sweethome3d-furniture"),
+        },
         "commit": git_commit(),
     });
     Ok(write_atomic(&out.join("manifest.json"), (serde_json::to_string_pretty(&manifest)? + "\n").as_bytes())?)
@@ -209,10 +238,56 @@ fn preview(world: &World, args: &Args, domains: &[Domain]) -> Result<()> {
                 },
             )
             .collect::<Result<_>>()?;
-        let path = args.preview_dir.join(format!("{}.png", domain.name.replace('/', "-")));
+        let path = args.preview_dir.join(format!("{}{}.png", sheet_prefix(args), domain.name.replace('/', "-")));
         contact_sheet(&images, 4).save(&path).with_context(|| format!("writing {}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
+    Ok(())
+}
+
+/// Sheet names: `<domain>.png` for cars (as always), `<category>-<domain>.png` for the others.
+fn sheet_prefix(args: &Args) -> String {
+    match args.category {
+        Category::Car => String::new(),
+        other => format!("{}-", other.name()),
+    }
+}
+
+/// One row per model (source models, then shape models, in catalogue order), one column per
+/// azimuth (0°: the front, 45°, 90°: the left side, front to the left, 135°) at 20° elevation, over grey, with the category cuboid and the
+/// canonical front (−y) as a green line from the centre: on a correctly oriented model it
+/// points at the object's front in every column.
+fn orientation_sheets(world: &World, args: &Args) -> Result<()> {
+    let (height, width) = args.profile.crop();
+    let background = image::RgbImage::from_pixel(width as u32, height as u32, image::Rgb([128, 128, 128]));
+    let light = udapose_lab::render::Light { direction: [0.3, -0.5, 0.8], ambient: 0.45, diffuse: 0.6 };
+    let camera = udapose_engine::Camera::for_crop(height, width)?;
+    let images: Vec<image::RgbImage> = world
+        .models
+        .par_iter()
+        .flat_map_iter(|(_, model)| (0..4).map(move |k| (model, k)))
+        .map_init(
+            || Renderer::new(synth::SUPERSAMPLE),
+            |renderer, (model, k)| -> Result<image::RgbImage> {
+                let angles = [k as f64 * std::f64::consts::FRAC_PI_4, 20f64.to_radians(), 0.0];
+                let distance = udapose_engine::camera::fit_distance(model.mesh.vertices(), angles, &camera, 0.85)?;
+                let pose = udapose_engine::Pose::new(angles[0], angles[1], angles[2], distance);
+                let layer = renderer.render(model, None, &pose, height, width, &light)?;
+                let (mut image, _) = layer.composite(&background);
+                draw_cuboid(&mut image, &world.cuboid, &pose, [255, 40, 40]);
+                draw_segment(&mut image, [0.0; 3], [0.0, -0.6, 0.0], &pose, [40, 220, 40]);
+                Ok(image)
+            },
+        )
+        .collect::<Result<_>>()?;
+    std::fs::create_dir_all(&args.preview_dir)?;
+    let path = args.preview_dir.join(format!("{}-orientation.png", args.category.name()));
+    contact_sheet(&images, 4).save(&path).with_context(|| format!("writing {}", path.display()))?;
+    eprintln!(
+        "wrote {} (rows: {})",
+        path.display(),
+        world.models.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>().join(", ")
+    );
     Ok(())
 }
 

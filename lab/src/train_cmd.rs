@@ -29,8 +29,9 @@ pub struct Args {
     /// SynCar-OOD root (trains on source/train, validates on source/val).
     #[arg(long)]
     data: PathBuf,
-    #[arg(long, default_value = "car")]
-    category: String,
+    /// The model's category (default: the dataset's, `car` for datasets that name none).
+    #[arg(long)]
+    category: Option<String>,
     /// The new model directory (must not exist).
     #[arg(long)]
     out: PathBuf,
@@ -242,7 +243,7 @@ fn manifest(
     let data = &dataset.manifest;
     Manifest {
         format_version: checkpoint::FORMAT_VERSION,
-        category: args.category.clone(),
+        category: args.category.clone().unwrap_or_else(|| data["category"].as_str().unwrap_or("car").to_string()),
         version: format!("source-{}", crate::synth_cmd::git_commit()),
         vertices,
         cuboid: dataset.cuboid,

@@ -84,8 +84,16 @@ impl TexturedMesh {
     /// Reads an OBJ file whose faces all use one texture, `texture` (TORCS cars and wheels have
     /// one each); polygons are split into fans.
     pub fn read_obj(obj: &str, texture: Texture) -> Result<Self> {
+        Self::read_obj_with(obj, vec![texture], |_| None)
+    }
+
+    /// Reads an OBJ file whose faces pick their texture by material: `material(name)` is the
+    /// index into `textures` of a `usemtl` name; faces before any `usemtl`, or under a name it
+    /// does not know, use texture 0.
+    pub fn read_obj_with(obj: &str, textures: Vec<Texture>, material: impl Fn(&str) -> Option<u16>) -> Result<Self> {
         let (mut positions, mut tex_coords) = (Vec::new(), Vec::new());
-        let mut mesh = TexturedMesh { textures: vec![texture], ..Default::default() };
+        let mut mesh = TexturedMesh { textures, ..Default::default() };
+        let mut current = 0u16;
         for (n, line) in obj.lines().enumerate() {
             let mut t = line.split_whitespace();
             let nums = |t: std::str::SplitWhitespace, k: usize| -> Result<Vec<f64>> {
@@ -111,9 +119,10 @@ impl TexturedMesh {
                         let tri = [corners[0], corners[k], corners[k + 1]];
                         mesh.faces.push(tri.map(|c| c.0));
                         mesh.uvs.push(tri.map(|c| c.1));
-                        mesh.face_texture.push(0);
+                        mesh.face_texture.push(current);
                     }
                 }
+                Some("usemtl") => current = t.next().and_then(&material).unwrap_or(0),
                 _ => {}
             }
         }

@@ -1,11 +1,16 @@
 //! The benchmark's raw material: TORCS cars and track photographs (Debian packages
-//! `torcs-data` and `assimp-utils`, installed by `make assets`).
+//! `torcs-data` and `assimp-utils`, installed by `make assets`), and the other categories'
+//! models: FlightGear aircraft and buses, Sweet Home 3D furniture (`make assets-all`).
 
 pub mod backgrounds;
 pub mod car;
+pub mod category;
+pub mod flightgear;
 pub mod mesh;
+pub mod mtl;
 pub mod params;
 pub mod sgi;
+pub mod sweethome;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -36,6 +41,10 @@ const INSTALL_HINT: &str = "run `make assets` (installs the Debian packages torc
 #[derive(Clone, Debug)]
 pub struct Assets {
     pub torcs: PathBuf,
+    /// FlightGear's data (aeroplanes, buses); checked when a model is loaded.
+    pub flightgear: PathBuf,
+    /// The Sweet Home 3D furniture libraries (chairs, sofas, dining tables); checked likewise.
+    pub sweethome: PathBuf,
     pub cache: PathBuf,
 }
 
@@ -46,7 +55,12 @@ impl Assets {
             bail!("TORCS data not found under {}: {INSTALL_HINT}", torcs.display());
         }
         std::fs::create_dir_all(cache).with_context(|| format!("creating {}", cache.display()))?;
-        Ok(Assets { torcs: torcs.to_path_buf(), cache: cache.to_path_buf() })
+        Ok(Assets {
+            torcs: torcs.to_path_buf(),
+            flightgear: flightgear::DEFAULT_DIR.into(),
+            sweethome: sweethome::DEFAULT_DIR.into(),
+            cache: cache.to_path_buf(),
+        })
     }
 
     pub fn car_dir(&self, name: &str) -> PathBuf {
@@ -57,7 +71,8 @@ impl Assets {
         self.torcs.join("wheels").join(name)
     }
 
-    /// The OBJ conversion of an AC3D file, made once with `assimp export` and cached.
+    /// The OBJ conversion of an AC3D file, made once with `assimp export` and cached, with its
+    /// material library beside it (`<same name>.mtl`; its `mtllib` line names a temporary file).
     pub fn obj(&self, acc: &Path) -> Result<PathBuf> {
         let parent =
             acc.parent().and_then(Path::file_name).map(|p| p.to_string_lossy().into_owned()).unwrap_or_default();
@@ -78,8 +93,11 @@ impl Assets {
         if !status.success() {
             bail!("assimp export {} failed ({status})", acc.display());
         }
+        // The material library first: the OBJ is the mark of a finished conversion.
+        if tmp.with_extension("mtl").is_file() {
+            std::fs::rename(tmp.with_extension("mtl"), out.with_extension("mtl"))?;
+        }
         std::fs::rename(&tmp, &out)?;
-        let _ = std::fs::remove_file(tmp.with_extension("mtl"));
         Ok(out)
     }
 }

@@ -15,9 +15,9 @@ use std::path::{Path, PathBuf};
 use super::{CropFrame, CropPose, DatasetError, Mask, Result, file_stem, mask_from, pair, read_list, size};
 use crate::npz::{NpyArray, NpyData, NpyError, Npz};
 
-/// The only category SynCar-OOD renders.
+/// The category of SynCar-OOD proper; `synth --category` renders the others in the same layout.
 pub const CATEGORY: &str = "car";
-/// Name of the list file in `lists/car/`.
+/// Name of the list file in `lists/<category>/`.
 pub const LIST_FILE: &str = "list.txt";
 /// The annotation keys in the order they are written (BENCHMARK.md §4); `occ_fraction` and
 /// `occluder` only in the occlusion domains.
@@ -161,12 +161,30 @@ pub struct SplitPaths {
 }
 
 impl SplitPaths {
+    /// The paths of a split on disk: of its one category (`lists/<category>/`), `car` if it has
+    /// none yet.
     pub fn new(root: &Path, domain: &str, split: &str) -> Self {
+        let lists = root.join(domain).join(split).join("lists");
+        let mut categories = fs::read_dir(&lists)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter(|e| e.path().is_dir())
+            .map(|e| e.file_name().to_string_lossy().into_owned());
+        let category = match (categories.next(), categories.next()) {
+            (Some(only), None) => only,
+            _ => CATEGORY.to_string(),
+        };
+        Self::of_category(root, domain, split, &category)
+    }
+
+    /// The paths of `category`'s samples in a split (what `synth --category` writes).
+    pub fn of_category(root: &Path, domain: &str, split: &str, category: &str) -> Self {
         let base = root.join(domain).join(split);
         SplitPaths {
-            images: base.join("images").join(CATEGORY),
-            annotations: base.join("annotations").join(CATEGORY),
-            list: base.join("lists").join(CATEGORY).join(LIST_FILE),
+            images: base.join("images").join(category),
+            annotations: base.join("annotations").join(category),
+            list: base.join("lists").join(category).join(LIST_FILE),
         }
     }
 

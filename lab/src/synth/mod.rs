@@ -20,9 +20,9 @@ use udapose_engine::{Camera, Cuboid, Pose};
 
 pub use domains::{Domain, Nuisance, all_domains};
 
+use crate::assets::Assets;
 use crate::assets::backgrounds::{Backgrounds, Group, random_crop};
-use crate::assets::car::Car;
-use crate::assets::{Assets, SHAPE_CARS, SOURCE_CARS};
+use crate::assets::category::{self, Catalogue, Category};
 use crate::datasets::syncar::Annotation;
 use crate::datasets::{CropPose, Mask};
 use crate::render::{Layer, Light, Model, Renderer};
@@ -73,29 +73,33 @@ impl Profile {
 
 /// Everything a sample is drawn from, loaded once per run.
 pub struct World {
-    pub cars: Vec<(String, Model)>,
+    pub catalogue: Catalogue,
+    /// The source models, then the `shape` domain's; a model's index here is its `cad_index`.
+    pub models: Vec<(String, Model)>,
     pub backgrounds: Backgrounds,
-    /// The category cuboid: 99% extent of the pooled source-car vertices (METHOD.md §3).
+    /// The category cuboid: 99% extent of the pooled source-model vertices (METHOD.md §3).
     pub cuboid: Cuboid,
 }
 
 impl World {
-    pub fn load(assets: &Assets, crop_height: usize) -> Result<Self> {
-        let names: Vec<&str> = SOURCE_CARS.iter().chain(SHAPE_CARS.iter()).copied().collect();
-        let cars: Vec<(String, Model)> = names
+    pub fn load(assets: &Assets, category: Category, crop_height: usize) -> Result<Self> {
+        let catalogue = Catalogue::of(assets, category)?;
+        let models: Vec<(String, Model)> = catalogue
+            .source
             .iter()
-            .map(|&n| Ok((n.to_string(), Model::new(Car::load(assets, n)?.mesh)?)))
+            .chain(&catalogue.shape)
+            .map(|n| Ok((n.clone(), Model::new(category::load(assets, category, n)?)?)))
             .collect::<Result<_>>()?;
         let pooled: Vec<[f64; 3]> =
-            cars[..SOURCE_CARS.len()].iter().flat_map(|(_, m)| m.mesh.vertices().iter().copied()).collect();
+            models[..catalogue.source.len()].iter().flat_map(|(_, m)| m.mesh.vertices().iter().copied()).collect();
         let cuboid = Cuboid::from_cad_vertices(&pooled, udapose_engine::mesh::CAD_COVERAGE)?;
         let backgrounds = Backgrounds::load(&assets.torcs, (2 * crop_height).max(256) as u32)?;
-        Ok(World { cars, backgrounds, cuboid })
+        Ok(World { catalogue, models, backgrounds, cuboid })
     }
 
-    /// Index of a car in `cars` (= its `cad_index`).
-    fn car_index(&self, name: &str) -> usize {
-        self.cars.iter().position(|(n, _)| n == name).expect("known car")
+    /// Index of a model in `models` (= its `cad_index`).
+    fn model_index(&self, name: &str) -> usize {
+        self.models.iter().position(|(n, _)| n == name).expect("known model")
     }
 }
 
@@ -123,10 +127,10 @@ pub fn render_sample(
     let nuisances = domain.nuisances(rng);
     let has = |n: Nuisance| nuisances.contains(&n);
 
-    let cars: &[&str] = if has(Nuisance::Shape) { &SHAPE_CARS } else { &SOURCE_CARS };
-    let car = cars[rng.random_range(0..cars.len())];
-    let cad_index = world.car_index(car);
-    let model = &world.cars[cad_index].1;
+    let names = if has(Nuisance::Shape) { &world.catalogue.shape } else { &world.catalogue.source };
+    let name = &names[rng.random_range(0..names.len())];
+    let cad_index = world.model_index(name);
+    let model = &world.models[cad_index].1;
     let angles = sample_angles(rng, has(Nuisance::Pose));
     let fill = rng.random_range(0.80..0.95);
     let distance = fit_distance(model.mesh.vertices(), angles, &Camera::for_crop(height, width)?, fill)?;
@@ -171,7 +175,7 @@ pub fn render_sample(
         None => (None, None),
     };
     let annotation =
-        Annotation { pose, fill, car: car.to_string(), cad_index: cad_index as i64, mask, occ_fraction, occluder };
+        Annotation { pose, fill, car: name.clone(), cad_index: cad_index as i64, mask, occ_fraction, occluder };
     Ok(Sample { image, annotation })
 }
 
