@@ -79,6 +79,16 @@ pub struct Model {
     pub neural_mesh: NeuralMesh,
 }
 
+impl Model {
+    /// Bytes of its tensors (backbone variables and buffers, neural mesh), on its device.
+    pub fn tensor_bytes(&self) -> usize {
+        let bytes = |t: &Tensor| t.numel() * t.kind().elt_size_in_bytes();
+        let nm = &self.neural_mesh;
+        self.vs.variables().values().map(bytes).sum::<usize>()
+            + [&nm.vertex_features, &nm.clutter, &nm.kappa, &nm.tau, &nm.r_bar].into_iter().map(bytes).sum::<usize>()
+    }
+}
+
 fn invalid(dir: &Path, what: impl std::fmt::Display) -> EngineError {
     EngineError::InvalidInput(format!("model {}: {what}", dir.display()))
 }

@@ -98,6 +98,14 @@ impl PoseSolver {
         &self.mesh
     }
 
+    /// Bytes held on the host: mesh, features, clutter and the grid's renders.
+    pub fn host_bytes(&self) -> usize {
+        self.mesh.bytes()
+            + std::mem::size_of_val(self.vertex_features.as_slice())
+            + std::mem::size_of_val(self.clutter.as_slice())
+            + self.grid.bytes()
+    }
+
     pub fn vertex_features(&self) -> &[f32] {
         &self.vertex_features
     }
@@ -190,6 +198,11 @@ impl Estimator {
 
     pub fn solver(&self) -> &PoseSolver {
         &self.solver
+    }
+
+    /// What this estimator keeps in memory: the model's tensors and the solver's host data.
+    pub fn resident_bytes(&self) -> usize {
+        self.model.tensor_bytes() + self.solver.host_bytes()
     }
 
     /// Features of a batch of crops (N×3×H×W in [0, 1], any device) in one backbone pass.

@@ -16,6 +16,11 @@ pub struct Mesh {
 }
 
 impl Mesh {
+    /// Bytes of its vertices and faces.
+    pub fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.vertices.as_slice()) + std::mem::size_of_val(self.faces.as_slice())
+    }
+
     pub fn new(vertices: Vec<[f64; 3]>, faces: Vec<[u32; 3]>) -> Result<Self> {
         let bad = |m: String| Err(EngineError::InvalidMesh(m));
         if vertices.is_empty() {

@@ -1,7 +1,9 @@
 //! Prometheus metrics: latency by category and model version, queue depth, batch sizes, and
 //! errors by code. Exposed as text at `/metrics`.
 
-use prometheus::{Encoder, HistogramOpts, HistogramVec, IntCounterVec, IntGaugeVec, Opts, Registry, TextEncoder};
+use prometheus::{
+    Encoder, HistogramOpts, HistogramVec, IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry, TextEncoder,
+};
 
 pub struct Metrics {
     registry: Registry,
@@ -17,6 +19,10 @@ pub struct Metrics {
     pub batch_size: HistogramVec,
     /// Seconds per stage (decode, queue, crop, backbone, solver) of successful estimates.
     pub stage: HistogramVec,
+    /// Bytes of the models a category's workers hold (each worker has its own copy).
+    pub model_bytes: IntGaugeVec,
+    /// The server's resident set size, read from /proc when the metrics are rendered.
+    resident_bytes: IntGauge,
 }
 
 impl Default for Metrics {
@@ -60,8 +66,21 @@ impl Metrics {
             &["stage"],
         )
         .expect("valid metric");
+        let model_bytes = IntGaugeVec::new(
+            Opts::new(
+                "model_bytes",
+                "Bytes of the models a category's workers hold: tensors and solver data, a copy per worker",
+            ),
+            &["category"],
+        )
+        .expect("valid metric");
+        let resident_bytes =
+            IntGauge::new("resident_bytes", "Resident set size of the server process (all categories)")
+                .expect("valid metric");
         for m in [
             Box::new(latency.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(model_bytes.clone()),
+            Box::new(resident_bytes.clone()),
             Box::new(requests.clone()),
             Box::new(errors.clone()),
             Box::new(queue_depth.clone()),
@@ -70,13 +89,23 @@ impl Metrics {
         ] {
             registry.register(m).expect("metric names are unique");
         }
-        Metrics { registry, latency, requests, errors, queue_depth, batch_size, stage }
+        Metrics { registry, latency, requests, errors, queue_depth, batch_size, stage, model_bytes, resident_bytes }
     }
 
     /// The text exposition format.
     pub fn render(&self) -> String {
+        if let Some(rss) = resident_set_bytes() {
+            self.resident_bytes.set(rss as i64);
+        }
         let mut out = Vec::new();
         TextEncoder::new().encode(&self.registry.gather(), &mut out).expect("encoding metrics into memory");
         String::from_utf8(out).unwrap_or_default()
     }
+}
+
+/// The process's resident set size (Linux: /proc/self/statm, in pages of 4 KiB).
+fn resident_set_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096)
 }

@@ -105,6 +105,9 @@ const IDLE_CHECK: Duration = Duration::from_millis(200);
 fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metrics: &Metrics) {
     let Some(mut loaded) = load_active(category, config.device, None) else { return };
     category.worker_loaded();
+    // This worker's share of the category's memory: its own copy of the model.
+    let memory = metrics.model_bytes.with_label_values(&[category.name.as_str()]);
+    memory.add(loaded.estimator.resident_bytes() as i64);
     let depth = metrics.queue_depth.with_label_values(&[category.name.as_str()]);
     let batch_sizes = metrics.batch_size.with_label_values(&[category.name.as_str()]);
     // A generation that failed to load is not retried until another one is activated.
@@ -113,7 +116,10 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
         let first = match rx.recv_timeout(IDLE_CHECK) {
             Ok(request) => Some(request),
             Err(RecvTimeoutError::Timeout) => None,
-            Err(RecvTimeoutError::Disconnected) => return,
+            Err(RecvTimeoutError::Disconnected) => {
+                memory.sub(loaded.estimator.resident_bytes() as i64);
+                return;
+            }
         };
         // Swap between batches: a new generation is loaded here, on this thread, while the
         // previous copy keeps serving until it is ready.
@@ -122,7 +128,10 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
             && failed != Some(active.generation)
         {
             match load_active(category, config.device, Some(&loaded)) {
-                Some(next) => loaded = next,
+                Some(next) => {
+                    memory.add(next.estimator.resident_bytes() as i64 - loaded.estimator.resident_bytes() as i64);
+                    loaded = next;
+                }
                 None => failed = Some(active.generation),
             }
         }

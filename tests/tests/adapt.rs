@@ -105,7 +105,11 @@ fn active_version(server: &Server) -> String {
 }
 
 fn estimate(server: &Server, image: &QuickImage) -> Value {
-    let r = server.request("POST", "/v1/pose/car", &[], &image.bytes);
+    estimate_as(server, "car", image)
+}
+
+fn estimate_as(server: &Server, category: &str, image: &QuickImage) -> Value {
+    let r = server.request("POST", &format!("/v1/pose/{category}"), &[], &image.bytes);
     assert_eq!(r.status, 200, "{}", r.body);
     r.json()
 }
@@ -176,12 +180,20 @@ impl Load {
 fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     // Fog, with the target check off: to two of the four quick models tried, 0.3 % and 0.9 % of
     // the vertices fire on fog, under the check's 2 % (the no-car test covers the check).
-    let server = server_with("adapt-online", &["--min-target-fired", "0"]);
+    // A second category ("bus": a copy of the quick model) is served beside car: the job on
+    // car must change none of its answers.
+    let server = Server::config("adapt-online")
+        .quick_model()
+        .quick_model_as("bus")
+        .args(["--adapt-min-images", "100000", "--max-batch", "1", "--min-target-fired", "0"])
+        .start();
     let test_images = quick_images("corrupt/fog", 60);
     let (before, _) = accuracy(&server, &test_images);
     let probe = quick_images("source", 1).remove(0);
     let seed_answer = estimate(&server, &probe);
     let seed = seed_answer["model_version"].as_str().unwrap().to_owned();
+    let bus_probes: Vec<QuickImage> = quick_images("corrupt/fog", 8);
+    let bus_before: Vec<Value> = bus_probes.iter().map(|i| estimate_as(&server, "bus", i)).collect();
 
     // 8 clients estimate during the whole upload, job and swap.
     let load = Load::start(&server, 8);
@@ -219,6 +231,27 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     );
     let served: BTreeSet<&str> = seen.iter().map(|(_, v)| v.as_str()).collect();
     assert!(served.contains(seed.as_str()) && served.contains(version.as_str()), "{served:?}");
+    // Bus answers exactly as before the job, from the same version.
+    for (image, before) in bus_probes.iter().zip(&bus_before) {
+        let after = estimate_as(&server, "bus", image);
+        assert_eq!((&after["model_version"], &after["estimates"]), (&before["model_version"], &before["estimates"]));
+    }
+    // Both categories are listed, each with the memory its workers hold.
+    let (ok, listed, stderr) = udapose(&server, &["models"]);
+    assert!(ok && listed.contains("bus") && listed.contains("car"), "{listed}{stderr}");
+    let (_, metrics) = server.get("/metrics");
+    for category in ["bus", "car"] {
+        let line = format!("udapose_model_bytes{{category=\"{category}\"}} ");
+        let bytes: f64 = metrics
+            .lines()
+            .find_map(|l| l.strip_prefix(&line))
+            .unwrap_or_else(|| panic!("no {line} in /metrics"))
+            .parse()
+            .unwrap();
+        // The quick ResNet-18 alone is ~45 MB of f32 weights.
+        assert!(bytes > 1e7, "{category}: {bytes} bytes");
+    }
+    assert!(metrics.lines().any(|l| l.starts_with("udapose_resident_bytes ")), "{metrics}");
     let (_, versions) = server.get("/v1/models/car/versions");
     let versions: Value = serde_json::from_str(&versions).unwrap();
     let existing: BTreeSet<&str> =

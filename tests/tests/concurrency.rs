@@ -84,16 +84,6 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
     assert_eq!(server.get("/readyz").0, 200);
 }
 
-trait Args {
-    fn args(self, args: [&str; 4]) -> Self;
-}
-
-impl Args for support::ServerConfig {
-    fn args(self, args: [&str; 4]) -> Self {
-        args.into_iter().fold(self, |c, a| c.arg(a))
-    }
-}
-
 async fn sequential(server: &Server, images: &[Vec<u8>]) -> Vec<PoseEstimate> {
     let client = Client::connect(&server.grpc_endpoint()).await.unwrap();
     let mut out = Vec::new();

@@ -48,6 +48,15 @@ pub struct GridRenders {
 }
 
 impl GridRenders {
+    /// Bytes held on the host (what a loaded model costs beyond its tensors).
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.poses.len() * size_of::<Pose>()
+            + self.covered.iter().map(|c| c.len() * size_of::<Covered>()).sum::<usize>()
+            + self.starts.len() * size_of::<usize>()
+            + self.cells.len() * size_of::<u32>()
+    }
+
     pub fn new(mesh: &Mesh, crop: &Camera, config: &SolverConfig) -> Result<Self> {
         config.validate()?;
         let grid = crop.at_stride(config.stride)?;

@@ -32,6 +32,8 @@ pub struct Server {
 pub struct ServerConfig {
     name: String,
     quick_model: bool,
+    /// More categories served with a copy of the quick model.
+    also_as: Vec<String>,
     args: Vec<String>,
     tls: bool,
     store: Option<String>,
@@ -63,10 +65,21 @@ impl ServerConfig {
         self
     }
 
+    /// Also serves a copy of the quick model as `category` (its manifest says so), beside car.
+    pub fn quick_model_as(mut self, category: &str) -> Self {
+        self.also_as.push(category.into());
+        self
+    }
+
     /// Serves TLS with these PEM files (readiness is then polled with `curl -k`).
     pub fn tls(mut self, cert: &Path, key: &Path) -> Self {
         self.tls = true;
         self.arg("--tls-cert").arg(cert.display().to_string()).arg("--tls-key").arg(key.display().to_string())
+    }
+
+    pub fn args<const N: usize>(mut self, args: [&str; N]) -> Self {
+        self.args.extend(args.map(String::from));
+        self
     }
 
     pub fn arg(mut self, arg: impl Into<String>) -> Self {
@@ -83,9 +96,16 @@ impl ServerConfig {
         fs::create_dir_all(&models).expect("creating the models directory");
         if self.quick_model {
             let quick = env_path("UDAPOSE_QUICK_MODEL");
-            fs::create_dir(models.join("car")).unwrap();
-            for f in fs::read_dir(&quick).expect("reading the quick model").map(|e| e.unwrap().path()) {
-                fs::copy(&f, models.join("car").join(f.file_name().unwrap())).unwrap();
+            for category in std::iter::once("car").chain(self.also_as.iter().map(String::as_str)) {
+                let dir = models.join(category);
+                fs::create_dir(&dir).unwrap();
+                for f in fs::read_dir(&quick).expect("reading the quick model").map(|e| e.unwrap().path()) {
+                    fs::copy(&f, dir.join(f.file_name().unwrap())).unwrap();
+                }
+                let manifest = dir.join("manifest.json");
+                let mut m: serde_json::Value = serde_json::from_slice(&fs::read(&manifest).unwrap()).unwrap();
+                m["category"] = category.into();
+                fs::write(&manifest, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
             }
         }
         let [http_addr, grpc_addr] = free_addrs();
@@ -134,6 +154,7 @@ impl Server {
         ServerConfig {
             name: name.into(),
             quick_model: false,
+            also_as: Vec::new(),
             args: Vec::new(),
             tls: false,
             store: None,
