@@ -11,6 +11,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use serde_json::{Value, json};
 use udapose_engine::metrics::paired_bootstrap;
+use udapose_lab::assets::category::Category;
+use udapose_lab::datasets::syncar::SplitPaths;
 
 use crate::plot;
 
@@ -56,13 +58,18 @@ pub struct Args {
     /// Benchmark profile: quick, standard or full.
     #[arg(long, default_value = "standard")]
     profile: String,
-    /// SynCar-OOD root (default: data/syncar-ood-<profile>; rendered when missing).
+    /// The object category (its dataset, model and work folder by default).
+    #[arg(long, value_enum, default_value = "car")]
+    category: Category,
+    /// SynCar-OOD root (default: data/syncar-ood-<profile>, -<category> after it for categories
+    /// other than car; rendered when missing).
     #[arg(long)]
     data: Option<PathBuf>,
-    /// Source model (default: models/car for standard, else trained into the work folder).
+    /// Source model (default: models/<category> for standard, else trained into the work folder).
     #[arg(long)]
     source: Option<PathBuf>,
-    /// Where the stages cache their models and evaluations (default: data/report-<profile>).
+    /// Where the stages cache their models and evaluations (default: data/report-<profile>,
+    /// with -<category> as for --data).
     #[arg(long)]
     work: Option<PathBuf>,
     /// Domains to adapt (default: BENCHMARK.md §5's list).
@@ -77,9 +84,10 @@ pub struct Args {
     /// Write the report from the cached stages only; run nothing.
     #[arg(long)]
     no_run: bool,
-    /// Report (JSON; a Markdown twin and PNGs are written next to it).
-    #[arg(long, default_value = "reports/syncar-ood.json")]
-    out: PathBuf,
+    /// Report (JSON; a Markdown twin and a folder of PNGs of the same name are written next to
+    /// it; default: reports/syncar-ood.json, reports/syncar-ood-<category>.json for the others).
+    #[arg(long)]
+    out: Option<PathBuf>,
     /// Extra flags for every `adapt` run (e.g. "--max-rounds 4"), space-separated.
     #[arg(long, default_value = "")]
     adapt_flags: String,
@@ -127,21 +135,31 @@ struct Report<'a> {
     data: PathBuf,
     source: PathBuf,
     work: PathBuf,
+    out: PathBuf,
     timings: BTreeMap<String, f64>,
 }
 
 pub fn run(args: &Args) -> Result<()> {
-    let data = args.data.clone().unwrap_or_else(|| PathBuf::from(format!("data/syncar-ood-{}", args.profile)));
-    let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("data/report-{}", args.profile)));
+    let suffix = match args.category {
+        Category::Car => String::new(),
+        other => format!("-{}", other.name()),
+    };
+    let data = args.data.clone().unwrap_or_else(|| PathBuf::from(format!("data/syncar-ood-{}{suffix}", args.profile)));
+    let work = args.work.clone().unwrap_or_else(|| PathBuf::from(format!("data/report-{}{suffix}", args.profile)));
     let source = args.source.clone().unwrap_or_else(|| {
-        if args.profile == "standard" { PathBuf::from("models/car") } else { work.join("source-model") }
+        if args.profile == "standard" {
+            PathBuf::from("models").join(args.category.name())
+        } else {
+            work.join("source-model")
+        }
     });
     std::fs::create_dir_all(&work)?;
     let timings = std::fs::read_to_string(work.join("timings.json"))
         .ok()
         .and_then(|t| serde_json::from_str(&t).ok())
         .unwrap_or_default();
-    let mut r = Report { args, data, source, work, timings };
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(format!("reports/syncar-ood{suffix}.json")));
+    let mut r = Report { args, data, source, work, out, timings };
     let domains: Vec<String> =
         if args.domains.is_empty() { DOMAINS.iter().map(|d| d.to_string()).collect() } else { args.domains.clone() };
     let ablation: Vec<String> =
@@ -165,7 +183,12 @@ impl Report<'_> {
     fn prepare(&mut self) -> Result<()> {
         if !self.data.join("manifest.json").is_file() {
             let (data, profile) = (self.data.display().to_string(), self.args.profile.clone());
-            self.stage("synth", &self.data.clone(), &["synth", "--profile", &profile, "--out", &data])?;
+            let category = self.args.category.name();
+            self.stage(
+                "synth",
+                &self.data.clone(),
+                &["synth", "--profile", &profile, "--category", category, "--out", &data],
+            )?;
         }
         if !self.source.join("manifest.json").is_file() {
             let (data, out) = (self.data.display().to_string(), self.source.display().to_string());
@@ -188,7 +211,7 @@ impl Report<'_> {
     fn run_domain(&mut self, domain: &str, ablation: bool, strong: bool) -> Result<()> {
         let d = self.data.display().to_string();
         let src = self.source.display().to_string();
-        let images = self.data.join(domain).join("adapt/images/car").display().to_string();
+        let images = SplitPaths::new(&self.data, domain, "adapt").images.display().to_string();
         let mut extra: Vec<String> = self.args.adapt_flags.split_whitespace().map(String::from).collect();
         let adapted = self.model_dir(Variant::Adapted, domain);
         let mut cmd = vec!["adapt".to_string(), "--model".into(), src.clone(), "--images".into(), images.clone()];
@@ -377,9 +400,9 @@ impl Report<'_> {
             "domains": out,
             "stage_seconds": self.timings,
         });
-        udapose_lab::atomic::write_atomic(&self.args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
-        udapose_lab::atomic::write_atomic(&self.args.out.with_extension("md"), md.as_bytes())?;
-        eprintln!("wrote {} and its .md", self.args.out.display());
+        udapose_lab::atomic::write_atomic(&self.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
+        udapose_lab::atomic::write_atomic(&self.out.with_extension("md"), md.as_bytes())?;
+        eprintln!("wrote {} and its .md", self.out.display());
         Ok(())
     }
 
@@ -419,7 +442,8 @@ impl Report<'_> {
 
     /// The paper's Fig. 1 and 7 for `combined`: fired-vertex ratio by azimuth and pose errors.
     fn figures(&self, s: &Value, a: &Value) -> Result<String> {
-        let dir = self.args.out.parent().unwrap_or(Path::new(".")).join("syncar-ood");
+        let stem = self.out.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let dir = self.out.parent().unwrap_or(Path::new(".")).join(&stem);
         std::fs::create_dir_all(&dir)?;
         let v = |e: &Value, k: &str| -> Vec<f64> {
             e[k].as_array().map(|x| x.iter().filter_map(Value::as_f64).collect()).unwrap_or_default()
@@ -434,11 +458,11 @@ impl Report<'_> {
         plot::histograms(&dir.join("errors-combined.png"), &[(&es, plot::BLUE), (&ea, plot::ORANGE)], 180.0, 18)?;
         Ok(format!(
             "\n## Figures (`combined` test split)\n\n\
-             ![fired-vertex ratio by azimuth](syncar-ood/fired-polar-combined.png)\n\n\
+             ![fired-vertex ratio by azimuth]({stem}/fired-polar-combined.png)\n\n\
              Share of each image's visible vertices (at its true pose) whose feature fires (cosine above the adaptation's threshold, 0.8 by default), mean per \
              30° azimuth sector (0° at the top, clockwise; rings at 0.25, 0.5, 0.75, 1): source model (blue, left, mean \
              {:.3}) and adapted model (orange, right, mean {:.3}). The paper's Fig. 1.\n\n\
-             ![pose-error histogram](syncar-ood/errors-combined.png)\n\n\
+             ![pose-error histogram]({stem}/errors-combined.png)\n\n\
              Rotation errors in 10° bins from 0° to 180°: source (blue) and adapted (orange); grey lines at quarters of \
              the tallest bar. The paper's Fig. 7.\n",
             mean(&fs),
