@@ -509,6 +509,15 @@ impl Store {
     pub fn import_seed(&self, category: &str, seed: &Path) -> Result<String> {
         let manifest_path = seed.join(MANIFEST);
         let manifest = fs::read(&manifest_path).map_err(io_err(&manifest_path))?;
+        // A model copied into another category's folder would answer for the wrong object.
+        let corrupt = |reason: String| StoreError::Corrupt { path: manifest_path.display().to_string(), reason };
+        let parsed: Manifest = serde_json::from_slice(&manifest).map_err(|e| corrupt(e.to_string()))?;
+        if parsed.category != category {
+            return Err(corrupt(format!(
+                "a model of category {:?} in the folder of category {category:?}",
+                parsed.category
+            )));
+        }
         let digest: String = Sha256::digest(&manifest).iter().take(6).map(|b| format!("{b:02x}")).collect();
         let version = format!("seed-{digest}");
         let prefix = format!("{}/{version}", Self::versions_key(category));

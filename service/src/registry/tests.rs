@@ -1,5 +1,5 @@
 //! The registry on an in-memory store: seeds imported and served, a new activation swapped in,
-//! a stale one refused, a rollback, and a category that cannot load saying why.
+//! a stale one refused, a rollback, and categories that cannot load saying why.
 
 use std::time::Instant;
 
@@ -72,11 +72,17 @@ fn a_category_that_cannot_load_is_not_ready_and_says_why() {
     let seeds = dir.join("seeds");
     fs::create_dir_all(seeds.join("bus")).unwrap();
     fs::write(seeds.join("bus").join(MANIFEST), b"{ not json").unwrap();
+    // The car model put in the chair folder.
+    fs::create_dir_all(seeds.join("chair")).unwrap();
+    fs::copy(shipped_models().join("car").join(MANIFEST), seeds.join("chair").join(MANIFEST)).unwrap();
     let store = Store::in_memory(&dir.join("cache")).unwrap();
     let registry = Registry::start(store, &seeds, &workers(), Arc::new(Metrics::new())).unwrap();
     let bus = registry.get("bus").expect("the failed seed is still listed");
     assert!(bus.active().is_none() && !bus.ready());
     assert!(bus.error().is_some_and(|e| !e.is_empty()), "{:?}", bus.error());
+    let chair = registry.get("chair").unwrap();
+    assert!(chair.active().is_none() && !chair.ready());
+    assert!(chair.error().is_some_and(|e| e.contains(r#"category "car" in the folder of category "chair""#)));
     let readiness = registry.readiness();
     assert!(!readiness.ready && readiness.reason.contains("bus: "), "{}", readiness.reason);
     fs::remove_dir_all(dir).unwrap();
