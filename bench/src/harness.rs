@@ -113,12 +113,25 @@ impl ServerProcess {
         flags: &[&str],
         verbose: bool,
     ) -> Result<(Self, SocketAddr)> {
+        Self::serve_models(binary, &[("car", model)], name, flags, verbose)
+    }
+
+    /// As [`ServerProcess::serve_model`], with each `(category, model)` served side by side.
+    pub(crate) fn serve_models(
+        binary: &Path,
+        models: &[(&str, &Path)],
+        name: &str,
+        flags: &[&str],
+        verbose: bool,
+    ) -> Result<(Self, SocketAddr)> {
         let dir = std::env::temp_dir().join(format!("udapose-bench-{name}-{}", std::process::id()));
         let _ = fs::remove_dir_all(&dir);
         fs::create_dir_all(dir.join("models"))?;
-        // A relative target would resolve inside `dir/models`, not where the caller meant.
-        let model = fs::canonicalize(model).with_context(|| format!("model {}", model.display()))?;
-        std::os::unix::fs::symlink(&model, dir.join("models/car"))?;
+        for (category, model) in models {
+            // A relative target would resolve inside `dir/models`, not where the caller meant.
+            let model = fs::canonicalize(model).with_context(|| format!("model {}", model.display()))?;
+            std::os::unix::fs::symlink(&model, dir.join("models").join(category))?;
+        }
         let [http, grpc] = free_addrs(2)?[..] else { unreachable!("two addresses") };
         let mut command = Command::new(binary);
         command

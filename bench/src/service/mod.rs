@@ -5,10 +5,12 @@
 //! ceiling, and the engine's own sequential image-to-pose rate. With a third server (batching
 //! on, adaptation started only by the benchmark) it measures the estimate latency while idle and
 //! while an online-adaptation job runs, then the hot-swap latency between the seed and the
-//! job's version (rollback / activate round trips, with clients running and with none). Writes
-//! `reports/service.json` and its Markdown twin.
+//! job's version (rollback / activate round trips, with clients running and with none). With
+//! `--models`, every category side by side (`categories`). Writes `reports/service.json` and
+//! its Markdown twin.
 
 mod adapt;
+mod categories;
 mod ceiling;
 pub(crate) mod clients;
 mod report;
@@ -101,6 +103,16 @@ pub struct ServiceArgs {
     /// Rollback/activate round trips measured with clients, and again with none.
     #[arg(long, default_value_t = 3)]
     swap_rounds: usize,
+    /// Also serve every category under this folder side by side (e.g. `models`): memory and
+    /// per-category latency under mixed load.
+    #[arg(long)]
+    models: Option<PathBuf>,
+    /// Where the other categories' datasets are (`<this>/syncar-ood-standard-<category>`).
+    #[arg(long, default_value = "data")]
+    category_data: PathBuf,
+    /// Clients of the side-by-side load.
+    #[arg(long, default_value_t = 6)]
+    categories_clients: usize,
 }
 
 /// One batching mode's name, `--max-batch` and levels.
@@ -125,6 +137,11 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
         (Value::Null, Value::Null)
     } else {
         adapt::adapt_and_swap(args, &server_bin, &model, &images)?
+    };
+
+    let side_by_side = match &args.models {
+        Some(models) => categories::side_by_side(args, &server_bin, models)?,
+        None => Value::Null,
     };
 
     let ceiling = if args.skip_ceiling {
@@ -164,14 +181,16 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
         "throughput_ratio": throughput_ratio(&modes, args.max_batch, ceiling.as_ref()),
         "p99_job_over_idle": adaptation["p99_ratio"],
         "job_seconds": adaptation["job"]["seconds"],
-        "failed_requests": failed_requests(&modes, &adaptation),
+        "failed_requests": failed_requests(&modes, &adaptation) + side_by_side["failed_requests"].as_u64().unwrap_or(0),
         "adaptation": adaptation,
         "swap": swap,
+        "side_by_side": side_by_side,
     });
     write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
     let mut md = report::markdown(args, &report, &modes, manifest.crop, ceiling.as_ref(), best);
     md.push_str(&report::adaptation_markdown(&report));
     md.push_str(&report::swap_markdown(&report));
+    md.push_str(&categories::markdown(&report));
     write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     eprintln!("wrote {} and its .md", args.out.display());
     Ok(())
@@ -219,38 +238,59 @@ fn batching_levels(args: &ServiceArgs, server_bin: &Path, model: &Path, images: 
 
 /// `requests` estimates from `concurrency` threads (images in rotation), after a warm-up.
 fn load(http: SocketAddr, images: &[Vec<u8>], concurrency: usize, requests: usize) -> Result<Level> {
+    let mut levels = load_categories(http, &[("car", images)], concurrency, requests)?;
+    Ok(levels.remove(0))
+}
+
+/// `requests` estimates from `concurrency` threads, request `r` to category `r mod n` (its
+/// images in rotation), after a warm-up of each; a level per category, all over the same time.
+fn load_categories(
+    http: SocketAddr,
+    targets: &[(&str, &[Vec<u8>])],
+    concurrency: usize,
+    requests: usize,
+) -> Result<Vec<Level>> {
     ensure!(concurrency >= 1, "concurrency must be at least 1");
-    for image in images.iter().cycle().take(4) {
-        let (status, body) = post_or_get(http, "POST", "/v1/pose/car", image)?;
-        ensure!(status == 200, "warm-up request failed: {status} {body}");
+    ensure!(!targets.is_empty() && targets.iter().all(|(_, i)| !i.is_empty()), "no images to send");
+    for (category, images) in targets {
+        for image in images.iter().cycle().take(4) {
+            let (status, body) = post_or_get(http, "POST", &format!("/v1/pose/{category}"), image)?;
+            ensure!(status == 200, "warm-up request to {category} failed: {status} {body}");
+        }
     }
-    let images = Arc::new(images.to_vec());
+    let targets: Arc<Vec<(String, Vec<Vec<u8>>)>> =
+        Arc::new(targets.iter().map(|(c, i)| (c.to_string(), i.to_vec())).collect());
     let started = Instant::now();
     let threads: Vec<_> = (0..concurrency)
         .map(|t| {
-            let images = images.clone();
+            let targets = targets.clone();
             std::thread::spawn(move || {
                 let mut out = Vec::new();
                 for r in (t..requests).step_by(concurrency) {
+                    let (category, images) = &targets[r % targets.len()];
+                    let image = &images[(r / targets.len()) % images.len()];
                     let sent = Instant::now();
-                    let ok =
-                        matches!(post_or_get(http, "POST", "/v1/pose/car", &images[r % images.len()]), Ok((200, _)));
-                    out.push((ok, sent.elapsed().as_secs_f64() * 1e3));
+                    let ok = matches!(post_or_get(http, "POST", &format!("/v1/pose/{category}"), image), Ok((200, _)));
+                    out.push((r % targets.len(), ok, sent.elapsed().as_secs_f64() * 1e3));
                 }
                 out
             })
         })
         .collect();
-    let mut latencies = Vec::new();
-    let mut errors = 0;
+    let mut per: Vec<(usize, usize, Vec<f64>)> = vec![(0, 0, Vec::new()); targets.len()];
     for t in threads {
-        for (ok, ms) in t.join().map_err(|_| anyhow::anyhow!("a client thread panicked"))? {
+        for (k, ok, ms) in t.join().map_err(|_| anyhow::anyhow!("a client thread panicked"))? {
+            per[k].0 += 1;
             if ok {
-                latencies.push(ms);
+                per[k].2.push(ms);
             } else {
-                errors += 1;
+                per[k].1 += 1;
             }
         }
     }
-    Ok(Level { concurrency, requests, errors, seconds: started.elapsed().as_secs_f64(), latencies_ms: latencies })
+    let seconds = started.elapsed().as_secs_f64();
+    Ok(per
+        .into_iter()
+        .map(|(requests, errors, latencies_ms)| Level { concurrency, requests, errors, seconds, latencies_ms })
+        .collect())
 }
