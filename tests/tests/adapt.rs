@@ -240,18 +240,14 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     let (ok, listed, stderr) = udapose(&server, &["models"]);
     assert!(ok && listed.contains("bus") && listed.contains("car"), "{listed}{stderr}");
     let (_, metrics) = server.get("/metrics");
+    let mut bytes_of_both = 0.0;
     for category in ["bus", "car"] {
-        let line = format!("udapose_model_bytes{{category=\"{category}\"}} ");
-        let bytes: f64 = metrics
-            .lines()
-            .find_map(|l| l.strip_prefix(&line))
-            .unwrap_or_else(|| panic!("no {line} in /metrics"))
-            .parse()
-            .unwrap();
+        let bytes = support::metric(&metrics, &format!("udapose_model_bytes{{category=\"{category}\"}}"));
         // The quick ResNet-18 alone is ~45 MB of f32 weights.
         assert!(bytes > 1e7, "{category}: {bytes} bytes");
+        bytes_of_both += bytes;
     }
-    assert!(metrics.lines().any(|l| l.starts_with("udapose_resident_bytes ")), "{metrics}");
+    assert!(support::metric(&metrics, "udapose_resident_bytes") > bytes_of_both, "{metrics}");
     let (_, versions) = server.get("/v1/models/car/versions");
     let versions: Value = serde_json::from_str(&versions).unwrap();
     let existing: BTreeSet<&str> =

@@ -214,13 +214,7 @@ fn check_models_metrics_openapi(server: &Server) {
     let (code, metrics) = server.get("/metrics");
     assert_eq!(code, 200);
     let latency = format!("udapose_estimate_duration_seconds_count{{category=\"car\",version=\"{version}\"}}");
-    let count: f64 = metrics
-        .lines()
-        .find_map(|l| l.strip_prefix(&latency))
-        .unwrap_or_else(|| panic!("{latency} missing:\n{metrics}"))
-        .trim()
-        .parse()
-        .unwrap();
+    let count = support::metric(&metrics, &latency);
     assert!(count >= IMAGES as f64 * 2.0, "{count}");
     for needle in [
         "udapose_batch_size_bucket",

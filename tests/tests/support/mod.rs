@@ -388,3 +388,14 @@ pub fn geodesic(a: [[f64; 3]; 3], b: [[f64; 3]; 3]) -> f64 {
     let norm = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
     norm.atan2((q[0][0] + q[1][1] + q[2][2] - 1.0) / 2.0)
 }
+
+/// The value of the Prometheus line `name` (labels included) in a `/metrics` text.
+pub fn metric(metrics: &str, name: &str) -> f64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' '))
+        .unwrap_or_else(|| panic!("{name} missing:\n{metrics}"))
+        .trim()
+        .parse()
+        .unwrap()
+}
