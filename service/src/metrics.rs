@@ -103,9 +103,11 @@ impl Metrics {
     }
 }
 
-/// The process's resident set size (Linux: /proc/self/statm, in pages of 4 KiB).
+/// The process's resident set size (Linux: /proc/self/statm's second field, in pages).
 fn resident_set_bytes() -> Option<u64> {
     let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
     let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
-    Some(pages * 4096)
+    // SAFETY: sysconf reads a constant of the system; no memory is passed.
+    let page = u64::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).ok()?;
+    Some(pages * page)
 }
