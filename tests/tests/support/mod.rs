@@ -2,6 +2,8 @@
 //! client; the quick SynCar-OOD images with their ground truth; pose error.
 #![allow(dead_code)] // each test binary uses a different part
 
+pub mod jobs;
+
 use std::{
     fs::{self, File},
     io::Read,
