@@ -52,7 +52,7 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test test-build build venv lite-weights assets assets-all browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build venv lite-weights assets assets-all category-models browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -115,6 +115,12 @@ assets-all: assets
 		echo "installing Debian packages flightgear-data-base and sweethome3d-furniture (~1.5 GB)"; \
 		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends flightgear-data-base sweethome3d-furniture; \
 	fi
+
+# The other categories' datasets, source models and evaluations, cached in $(UDAPOSE_CACHE) and
+# resumable (lab/scripts/category_models.sh; hours on a CPU). CATEGORIES= picks some.
+CATEGORIES ?=
+category-models: build assets-all $(LITE_WEIGHTS)
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) LAB=$(BIN)/udapose-lab WEIGHTS=$(LITE_WEIGHTS) lab/scripts/category_models.sh $(CATEGORIES)
 
 # Headless Chromium and its WebDriver for the web page's end-to-end test (tests/tests/web.rs).
 # Checked on every run (cheap), so a machine that lost them gets them back.
