@@ -104,7 +104,8 @@ fn extract(archive: &Path, folder: &Path, dir: &Path) -> Result<()> {
         if let Some(parent) = out.parent() {
             std::fs::create_dir_all(parent)?;
         }
-        let mut bytes = Vec::with_capacity(entry.size() as usize);
+        // The header's size is not trusted for the allocation; the read grows as needed.
+        let mut bytes = Vec::with_capacity(entry.size().min(1 << 26) as usize);
         entry.read_to_end(&mut bytes)?;
         std::fs::write(&out, bytes).with_context(|| format!("writing {}", out.display()))?;
     }
