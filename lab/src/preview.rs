@@ -7,8 +7,7 @@ use udapose_engine::{Camera, Cuboid, Pose, View};
 /// Draws the 12 edges of `cuboid` seen from `pose` onto `img` (a crop with its centre as
 /// principal point).
 pub fn draw_cuboid(img: &mut RgbImage, cuboid: &Cuboid, pose: &Pose, colour: [u8; 3]) {
-    let Ok(camera) = Camera::for_crop(img.height() as usize, img.width() as usize) else { return };
-    let Ok(view) = View::new(&camera, pose) else { return };
+    let Some(view) = crop_view(img, pose) else { return };
     let corner =
         |i: usize| -> [f64; 3] { std::array::from_fn(|a| if i >> a & 1 == 1 { cuboid.max[a] } else { cuboid.min[a] }) };
     for i in 0..8 {
@@ -24,10 +23,15 @@ pub fn draw_cuboid(img: &mut RgbImage, cuboid: &Cuboid, pose: &Pose, colour: [u8
 
 /// The segment between two object-frame points seen from `pose`.
 pub fn draw_segment(img: &mut RgbImage, a: [f64; 3], b: [f64; 3], pose: &Pose, colour: [u8; 3]) {
-    let Ok(camera) = Camera::for_crop(img.height() as usize, img.width() as usize) else { return };
-    let Ok(view) = View::new(&camera, pose) else { return };
+    let Some(view) = crop_view(img, pose) else { return };
     let (p, q) = (view.project(a), view.project(b));
     draw_line(img, [p[0], p[1]], [q[0], q[1]], colour);
+}
+
+/// The view of `pose` through the crop camera of `img`'s size (none for a degenerate pose).
+fn crop_view(img: &RgbImage, pose: &Pose) -> Option<View> {
+    let camera = Camera::for_crop(img.height() as usize, img.width() as usize).ok()?;
+    View::new(&camera, pose).ok()
 }
 
 /// A line between continuous pixel coordinates, clipped to the image.

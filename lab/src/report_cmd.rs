@@ -209,7 +209,6 @@ impl Report<'_> {
     }
 
     fn run_domain(&mut self, domain: &str, ablation: bool, strong: bool) -> Result<()> {
-        let d = self.data.display().to_string();
         let src = self.source.display().to_string();
         let images = SplitPaths::new(&self.data, domain, "adapt").images.display().to_string();
         let mut extra: Vec<String> = self.args.adapt_flags.split_whitespace().map(String::from).collect();
@@ -250,31 +249,28 @@ impl Report<'_> {
             self.stage(&format!("global {domain}"), &global, &cmd.iter().map(String::as_str).collect::<Vec<_>>())?;
         }
         for v in VARIANTS {
-            let model = self.model_dir(v, domain);
-            if !model.join("manifest.json").is_file() {
-                continue;
+            if self.model_dir(v, domain).join("manifest.json").is_file() {
+                self.evaluate(v, domain)?;
             }
-            let out = self.eval_file(v, domain);
-            let (m, o) = (model.display().to_string(), out.display().to_string());
-            self.stage(
-                &format!("eval {} {domain}", v.name()),
-                &out,
-                &["eval", "--model", &m, "--data", &d, "--domains", domain, "--out", &o],
-            )?;
         }
         Ok(())
+    }
+
+    /// The `eval` stage of model `v` on `domain`'s test split.
+    fn evaluate(&mut self, v: Variant, domain: &str) -> Result<()> {
+        let (model, out) = (self.model_dir(v, domain), self.eval_file(v, domain));
+        let (m, o, d) = (model.display().to_string(), out.display().to_string(), self.data.display().to_string());
+        self.stage(
+            &format!("eval {} {domain}", v.name()),
+            &out,
+            &["eval", "--model", &m, "--data", &d, "--domains", domain, "--out", &o],
+        )
     }
 
     /// Whether the source model leaves less than [`MIN_GAP`] to gain on `domain` (its test
     /// split): no oracle can show a gap there, so the strong oracle's passes are not spent on it.
     fn saturated(&mut self, domain: &str) -> Result<bool> {
-        let out = self.eval_file(Variant::Source, domain);
-        let (m, o, d) = (self.source.display().to_string(), out.display().to_string(), self.data.display().to_string());
-        self.stage(
-            &format!("eval source {domain}"),
-            &out,
-            &["eval", "--model", &m, "--data", &d, "--domains", domain, "--out", &o],
-        )?;
+        self.evaluate(Variant::Source, domain)?;
         let acc = self.evaluation(Variant::Source, domain).map(|e| f(&e["acc_pi_6"]));
         Ok(acc.is_some_and(|a| a >= 1.0 - MIN_GAP))
     }

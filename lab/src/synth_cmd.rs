@@ -254,9 +254,9 @@ fn sheet_prefix(args: &Args) -> String {
 }
 
 /// One row per model (source models, then shape models, in catalogue order), one column per
-/// azimuth (0°: the front, 45°, 90°: the left side, front to the left, 135°) at 20° elevation, over grey, with the category cuboid and the
-/// canonical front (−y) as a green line from the centre: on a correctly oriented model it
-/// points at the object's front in every column.
+/// azimuth (0°: the front; 45°; 90°: the left side, front to the left; 135°) at 20° elevation,
+/// over grey, with the category cuboid and the canonical front (−y) as a green line from the
+/// centre: on a correctly oriented model it points at the object's front in every column.
 fn orientation_sheets(world: &World, args: &Args) -> Result<()> {
     let (height, width) = args.profile.crop();
     let background = image::RgbImage::from_pixel(width as u32, height as u32, image::Rgb([128, 128, 128]));

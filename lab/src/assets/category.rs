@@ -115,6 +115,9 @@ pub struct Catalogue {
     pub category: Category,
     pub source: Vec<String>,
     pub shape: Vec<String>,
+    /// The furniture pieces behind the names (empty for cars and FlightGear models).
+    #[serde(skip)]
+    pieces: Vec<sweethome::Piece>,
 }
 
 impl Catalogue {
@@ -122,23 +125,57 @@ impl Catalogue {
     /// that `takes` accepts, sorted by name, every third one held out for `shape`.
     pub fn of(assets: &Assets, category: Category) -> Result<Self> {
         let names = |models: &[Model]| models.iter().map(|m| m.name().to_string()).collect();
+        let mut pieces = Vec::new();
         let (source, shape) = match category {
             Category::Car => (strings(&SOURCE_CARS), strings(&SHAPE_CARS)),
             Category::Aeroplane => (names(&SOURCE_AEROPLANES), names(&SHAPE_AEROPLANES)),
             Category::Bus => (names(&SOURCE_BUSES), names(&SHAPE_BUSES)),
             _ => {
-                let mut pieces: Vec<String> =
-                    furniture(assets)?.into_iter().filter(|p| category.takes(p)).map(|p| p.name).collect();
-                pieces.sort();
-                pieces.dedup();
-                let (shape, source): (Vec<_>, Vec<_>) = pieces.into_iter().enumerate().partition(|(i, _)| i % 3 == 2);
+                pieces = furniture(assets)?.into_iter().filter(|p| category.takes(p)).collect();
+                pieces.sort_by(|a, b| a.name.cmp(&b.name));
+                pieces.dedup_by(|a, b| a.name == b.name);
+                let (shape, source): (Vec<_>, Vec<_>) =
+                    pieces.iter().map(|p| p.name.clone()).enumerate().partition(|(i, _)| i % 3 == 2);
                 (source.into_iter().map(|(_, n)| n).collect(), shape.into_iter().map(|(_, n)| n).collect())
             }
         };
         if source.is_empty() || shape.is_empty() {
             bail!("no {} models found: run `make assets-all`", category.name());
         }
-        Ok(Catalogue { category, source, shape })
+        Ok(Catalogue { category, source, shape, pieces })
+    }
+
+    /// Loads model `name` in the canonical frame, normalised: cars to length 1 (as always), the
+    /// other categories to a largest extent of 1.
+    pub fn load(&self, assets: &Assets, name: &str) -> Result<TexturedMesh> {
+        let unknown = || format!("no {} model named {name}", self.category.name());
+        let mut mesh = match self.category {
+            Category::Car => return Ok(Car::load(assets, name)?.mesh),
+            Category::Aeroplane | Category::Bus => {
+                let (source, shape) = match self.category {
+                    Category::Aeroplane => (&SOURCE_AEROPLANES[..], &SHAPE_AEROPLANES[..]),
+                    _ => (&SOURCE_BUSES[..], &SHAPE_BUSES[..]),
+                };
+                let model = source.iter().chain(shape).find(|m| m.name() == name).with_context(unknown)?;
+                let mut mesh = flightgear::load(assets, &assets.flightgear, model)?;
+                to_canonical(&mut mesh, model.front.vector());
+                mesh
+            }
+            _ => {
+                let piece = self.pieces.iter().find(|p| p.name == name).with_context(unknown)?;
+                let library = name.split('/').next().unwrap_or_default();
+                let archive = assets.sweethome.join(format!("{library}.sh3f"));
+                let mut mesh = sweethome::load(&archive, piece, &assets.cache)?;
+                // Sweet Home 3D shows a piece from its front, looking down −z.
+                to_canonical(&mut mesh, [0.0, 0.0, 1.0]);
+                if self.category == Category::Diningtable {
+                    long_side_to_front(&mut mesh);
+                }
+                mesh
+            }
+        };
+        normalise(&mut mesh);
+        Ok(mesh)
     }
 }
 
@@ -152,43 +189,6 @@ fn furniture(assets: &Assets) -> Result<Vec<sweethome::Piece>> {
         all.extend(sweethome::catalogue(&assets.sweethome.join(format!("{library}.sh3f")))?);
     }
     Ok(all)
-}
-
-/// Loads model `name` of `category` in the canonical frame, normalised: cars to length 1 (as
-/// always), the other categories to a largest extent of 1.
-pub fn load(assets: &Assets, category: Category, name: &str) -> Result<TexturedMesh> {
-    let mut mesh = match category {
-        Category::Car => return Ok(Car::load(assets, name)?.mesh),
-        Category::Aeroplane | Category::Bus => {
-            let model = SOURCE_AEROPLANES
-                .iter()
-                .chain(&SHAPE_AEROPLANES)
-                .chain(&SOURCE_BUSES)
-                .chain(&SHAPE_BUSES)
-                .find(|m| m.name() == name)
-                .with_context(|| format!("no {} model named {name}", category.name()))?;
-            let mut mesh = flightgear::load(assets, &assets.flightgear, model)?;
-            to_canonical(&mut mesh, model.front.vector());
-            mesh
-        }
-        _ => {
-            let piece = furniture(assets)?
-                .into_iter()
-                .find(|p| p.name == name)
-                .with_context(|| format!("no {} model named {name}", category.name()))?;
-            let library = name.split('/').next().unwrap_or_default();
-            let archive = assets.sweethome.join(format!("{library}.sh3f"));
-            let mut mesh = sweethome::load(&archive, &piece, &assets.cache)?;
-            // Sweet Home 3D shows a piece from its front, looking down −z.
-            to_canonical(&mut mesh, [0.0, 0.0, 1.0]);
-            if category == Category::Diningtable {
-                long_side_to_front(&mut mesh);
-            }
-            mesh
-        }
-    };
-    normalise(&mut mesh);
-    Ok(mesh)
 }
 
 /// From a y-up frame whose front points along `front` (horizontal) to the canonical one: y is

@@ -22,7 +22,7 @@ pub use domains::{Domain, Nuisance, all_domains};
 
 use crate::assets::Assets;
 use crate::assets::backgrounds::{Backgrounds, Group, random_crop};
-use crate::assets::category::{self, Catalogue, Category};
+use crate::assets::category::{Catalogue, Category};
 use crate::datasets::syncar::Annotation;
 use crate::datasets::{CropPose, Mask};
 use crate::render::{Layer, Light, Model, Renderer};
@@ -88,7 +88,7 @@ impl World {
             .source
             .iter()
             .chain(&catalogue.shape)
-            .map(|n| Ok((n.clone(), Model::new(category::load(assets, category, n)?)?)))
+            .map(|n| Ok((n.clone(), Model::new(catalogue.load(assets, n)?)?)))
             .collect::<Result<_>>()?;
         let pooled: Vec<[f64; 3]> =
             models[..catalogue.source.len()].iter().flat_map(|(_, m)| m.mesh.vertices().iter().copied()).collect();
