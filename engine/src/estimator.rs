@@ -238,6 +238,16 @@ impl Estimator {
     /// are pruned to one, so a batch's solves, or a request's boxes, would otherwise leave the
     /// other cores idle. Each answer is the same as [`Estimator::estimate_features`]'s.
     pub fn estimate_all(&self, crops: &[&Crop], features: &[Features]) -> Vec<Result<(PoseEstimate, f64)>> {
+        self.estimate_all_in(None, crops, features)
+    }
+
+    /// [`Estimator::estimate_all`] with the solves on `pool` (the global pool where `None`).
+    pub fn estimate_all_in(
+        &self,
+        pool: Option<&rayon::ThreadPool>,
+        crops: &[&Crop],
+        features: &[Features],
+    ) -> Vec<Result<(PoseEstimate, f64)>> {
         use rayon::prelude::*;
         if crops.len() != features.len() {
             let e = || EngineError::InvalidInput(format!("{} crops but {} feature maps", crops.len(), features.len()));
@@ -245,15 +255,21 @@ impl Estimator {
         }
         // The tch model is not Sync; the solver and the cuboid are all a solve needs.
         let (solver, cuboid) = (&self.solver, &self.model.manifest.cuboid);
-        crops
-            .par_iter()
-            .zip(features)
-            .map(|(crop, f)| {
-                let started = std::time::Instant::now();
-                let estimate = answer(cuboid, crop, solver.solve(f)?)?;
-                Ok((estimate, started.elapsed().as_secs_f64() * 1e3))
-            })
-            .collect()
+        let solve = || {
+            crops
+                .par_iter()
+                .zip(features)
+                .map(|(crop, f)| {
+                    let started = std::time::Instant::now();
+                    let estimate = answer(cuboid, crop, solver.solve(f)?)?;
+                    Ok((estimate, started.elapsed().as_secs_f64() * 1e3))
+                })
+                .collect()
+        };
+        match pool {
+            Some(pool) => pool.install(solve),
+            None => solve(),
+        }
     }
 
     /// Image in, pose out, for one crop.

@@ -95,8 +95,13 @@ struct Args {
     /// (MiB); more wait for room until their deadline. An 8192×8192 RGBA PNG needs 448 MiB.
     #[arg(long, value_name = "MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..=1 << 22))]
     max_decoded_mib: u64,
-    /// Inference worker threads per category (each holds its own model copy).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+    /// Inference worker threads per category, each with its own model copy (0: one per core, at
+    /// most 4). Workers of one libtorch thread each beat one worker of every core under load
+    /// (2-core EPYC, 16 clients: 54.8 against 39.8 req/s) and lose on a lone stream (p50 38
+    /// against 31 ms); and a server whose workers keep every core busy leaves an adaptation job,
+    /// at its lower priority, almost nothing (one round in 480 s under 4 clients, against five in
+    /// 80 s with one worker): reports/service.md, reports/service-workers.md.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(0..=64))]
     workers: u32,
     /// Most crops per backbone pass: the crops of concurrent requests (and a request's boxes)
     /// share passes. An image's answer does not depend on it nor on the load (CPU passes hold
@@ -117,10 +122,10 @@ struct Args {
     /// Deadline of a request that brings none, in milliseconds.
     #[arg(long, default_value_t = 30_000)]
     timeout_ms: u64,
-    /// libtorch intra-op threads (0: one per core). Set once at start. One per core is fastest
-    /// on an idle machine; on a shared or loaded host spinning threads fight the other work
-    /// (measured: 560 ms a backbone pass with one per core on a loaded host, 170 ms with 1), so
-    /// give the server `cores / workers` or 1 there.
+    /// libtorch intra-op threads of each inference worker (0: the cores divided among a
+    /// category's workers, at least 1). On a shared or loaded host spinning threads fight the
+    /// other work (measured: 560 ms a backbone pass with one per core on a loaded host, 170 ms
+    /// with 1), so give the server fewer there.
     #[arg(long, default_value_t = 0)]
     torch_threads: i32,
     /// Bearer token with the admin role (required on everything but /, /openapi.json, health,
@@ -176,18 +181,20 @@ async fn main() -> Result<()> {
     init_tracing();
     let args = Args::parse();
     let tokens = tokens(&args)?;
-    if args.torch_threads > 0 {
-        tch::set_num_threads(args.torch_threads);
-    }
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let workers = if args.workers > 0 { args.workers as usize } else { cores.min(4) };
+    let torch_threads = if args.torch_threads > 0 { args.torch_threads as usize } else { (cores / workers).max(1) };
+    tch::set_num_threads(torch_threads as i32);
     let runtime = udapose_engine::runtime::RuntimeInfo::detect();
-    tracing::info!(device = ?runtime.device(), torch_threads = tch::get_num_threads(), rayon_threads = runtime.rayon_threads, "runtime");
+    tracing::info!(device = ?runtime.device(), workers, torch_threads, rayon_threads = runtime.rayon_threads, "runtime");
     let metrics = Arc::new(Metrics::new());
     let config = WorkerConfig {
-        workers: args.workers as usize,
+        workers,
         max_batch: args.max_batch as usize,
         max_delay: Duration::from_millis(args.max_delay_ms),
         queue_depth: args.queue_depth as usize,
         device: runtime.device(),
+        torch_threads,
     };
     let store = open_store(&args)?;
     let registry = Arc::new(Registry::start(store.clone(), &args.models, &config, metrics.clone())?);

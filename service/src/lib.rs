@@ -14,5 +14,6 @@ pub mod registry;
 pub mod regression;
 pub mod service;
 pub mod store;
+pub mod threads;
 pub mod views;
 pub mod worker;

@@ -39,6 +39,8 @@ pub struct WorkerConfig {
     /// Requests that may wait per category before more are refused.
     pub queue_depth: usize,
     pub device: Device,
+    /// libtorch intra-op threads of each worker (0: libtorch's own count, one per core).
+    pub torch_threads: usize,
 }
 
 /// One request's work: a decoded image and its boxes.
@@ -103,6 +105,13 @@ pub fn spawn(
 const IDLE_CHECK: Duration = Duration::from_millis(200);
 
 fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metrics: &Metrics) {
+    // 16 clients on two workers of one thread each, batching on: 39 req/s with the count set
+    // in `main` only, 67 with one per worker (`udapose-bench service --server-flags='--workers 2
+    // --torch-threads 1'`, 2-core EPYC; `crate::threads`).
+    if config.torch_threads > 0 {
+        crate::threads::pin_torch_threads(config.torch_threads);
+    }
+    let pool = crate::threads::solver_pool(config.workers, &format!("infer-{}", category.name));
     let Some(mut loaded) = load_active(category, config.device, None) else { return };
     category.worker_loaded();
     // This worker's share of the category's memory: its own copy of the model.
@@ -140,7 +149,7 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
         depth.set(rx.len() as i64);
         let crops: usize = batch.iter().map(Request::crops).sum();
         batch_sizes.observe(crops as f64);
-        process(&loaded, batch, config);
+        process(&loaded, batch, config, pool.as_ref());
     }
 }
 
@@ -171,12 +180,20 @@ fn load_active(category: &Category, device: Device, current: Option<&Loaded>) ->
 /// lone request goes at once. Measured with one client (`udapose-bench service --concurrency
 /// 1`): waiting 5 ms for nobody cost 17 ms per request (28.6 vs 44.6 req/s, p50 38 vs 21 ms),
 /// while under load the batch's companions are already queued when the worker picks it up.
+///
+/// A worker takes at most its share of what is queued (`queued / workers`, rounded up) so that
+/// the category's other workers are not left idle while one works through everything: with two
+/// workers and 4 clients, one worker took all four requests in one pass (53 req/s against 70
+/// with `--max-batch 1`).
 fn collect(rx: &Receiver<Request>, first: Request, config: &WorkerConfig) -> Vec<Request> {
     let mut crops = first.crops();
     let mut batch = vec![first];
-    let wait = if rx.is_empty() { Duration::ZERO } else { config.max_delay };
+    let queued = rx.len();
+    let wait = if queued == 0 { Duration::ZERO } else { config.max_delay };
+    let share = (queued + 1).div_ceil(config.workers.max(1)).max(1);
+    let limit = config.max_batch.min(if config.workers > 1 { share } else { config.max_batch });
     let until = Instant::now() + wait;
-    while crops < config.max_batch {
+    while crops < limit {
         match rx.recv_deadline(until) {
             Ok(request) => {
                 crops += request.crops();
@@ -196,7 +213,7 @@ struct Pending {
     crop_ms: f64,
 }
 
-fn process(loaded: &Loaded, batch: Vec<Request>, config: &WorkerConfig) {
+fn process(loaded: &Loaded, batch: Vec<Request>, config: &WorkerConfig, pool: Option<&rayon::ThreadPool>) {
     let mut pending = Vec::with_capacity(batch.len());
     for request in batch {
         let started = Instant::now();
@@ -221,7 +238,7 @@ fn process(loaded: &Loaded, batch: Vec<Request>, config: &WorkerConfig) {
         return;
     }
     let crops: Vec<&Crop> = pending.iter().flat_map(|p| &p.crops).collect();
-    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops, config)));
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| infer(loaded, &crops, config, pool)));
     let (mut results, backbone_ms) = match outcome {
         Ok(Ok(r)) => r,
         Ok(Err(e)) => (crops.iter().map(|_| Err(e.clone())).collect(), 0.0),
@@ -266,13 +283,19 @@ type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
 /// The backbone over the crops, in passes of at most `max_batch`, then the crops' solves in
 /// parallel. Returns each crop's answer and solver time, and the backbone's time.
-fn infer(loaded: &Loaded, crops: &[&Crop], config: &WorkerConfig) -> Result<(Vec<CropResult>, f64), ApiError> {
+/// The backbone on this thread, the solves on `pool` (the global pool where `None`).
+fn infer(
+    loaded: &Loaded,
+    crops: &[&Crop],
+    config: &WorkerConfig,
+    pool: Option<&rayon::ThreadPool>,
+) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
     let features = loaded.estimator.features(crops, config.max_batch)?;
     let backbone_ms = ms(started.elapsed());
     let results = loaded
         .estimator
-        .estimate_all(crops, &features)
+        .estimate_all_in(pool, crops, &features)
         .into_iter()
         .map(|r| Ok(r.map(|(estimate, ms)| (answer(loaded, estimate), ms))?))
         .collect();

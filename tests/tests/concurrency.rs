@@ -1,6 +1,7 @@
 //! 16 clients × 50 requests: no errors, and every answer bit-identical to the sequential one
 //! (`--max-batch 1`); with dynamic batching, batches share backbone passes and answers are
-//! bit-identical to each image's answer alone too, and to `--max-batch 1`'s;
+//! bit-identical to each image's answer alone too, and to `--max-batch 1`'s, and with two
+//! workers of one libtorch thread each;
 //! a saturated queue refuses at once with UNAVAILABLE / 503 and Retry-After, never queueing
 //! without bound. Needs `make test`'s quick model and data.
 
@@ -48,6 +49,18 @@ fn concurrent_answers_equal_sequential_ones_and_overload_is_refused_fast() {
         assert_eq!(bits(a), bits(u), "image {i}: --max-batch 8 answers differently from --max-batch 1");
     }
     assert!(batched_passes(&server) > 0.0, "no pass held more than one crop\n{}", server.get("/metrics").1);
+    drop(server);
+
+    // Two workers (each its own model copy, libtorch threads and solver pool, each taking its
+    // share of the queue), batching on: the answers of one worker over every core.
+    let server = Server::config("workers")
+        .quick_model()
+        .args(["--workers", "2", "--max-batch", "8", "--max-delay-ms", "20"])
+        .start();
+    let answers = runtime.block_on(hammer(&server, &images, CLIENTS, 3, 0));
+    for (i, p) in &answers {
+        assert_eq!(bits(p), bits(&unbatched[*i]), "image {i}: two workers answer differently from one");
+    }
     drop(server);
 
     // 3. Saturation: a queue of 1 and no batching; 16 simultaneous requests over HTTP.

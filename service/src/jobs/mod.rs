@@ -110,6 +110,9 @@ impl Jobs {
             .thread_name(|i| format!("adapt-solve-{i}"))
             .start_handler(move |_| {
                 priority::lower_this_thread(nice);
+                // Every core for the job's own libtorch work, at its lower priority, whatever
+                // count the inference workers were given.
+                crate::threads::pin_torch_threads(std::thread::available_parallelism().map_or(1, |n| n.get()));
             })
             .build()
             .context("building the adaptation jobs' thread pool")?;

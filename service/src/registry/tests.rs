@@ -15,7 +15,14 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn workers() -> WorkerConfig {
-    WorkerConfig { workers: 1, max_batch: 1, max_delay: Duration::ZERO, queue_depth: 4, device: Device::Cpu }
+    WorkerConfig {
+        workers: 1,
+        max_batch: 1,
+        max_delay: Duration::ZERO,
+        queue_depth: 4,
+        device: Device::Cpu,
+        torch_threads: 0,
+    }
 }
 
 fn shipped_models() -> PathBuf {
@@ -27,17 +34,27 @@ fn seeds_are_served_then_swapped_refused_when_stale_and_rolled_back() {
     let dir = scratch("swap");
     let store = Store::in_memory(&dir.join("cache")).unwrap();
     let registry = Registry::start(store.clone(), &shipped_models(), &workers(), Arc::new(Metrics::new())).unwrap();
-    assert_eq!(registry.categories().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["car"]);
+    // Every shipped category is served, in name order.
+    let mut shipped: Vec<String> = fs::read_dir(shipped_models())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.join(MANIFEST).is_file())
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    shipped.sort();
+    assert!(shipped.iter().any(|c| c == "car"), "{shipped:?}");
+    assert_eq!(registry.categories().map(|c| c.name.clone()).collect::<Vec<_>>(), shipped);
     let car = registry.get("car").unwrap();
     let seed = car.active().expect("the seed is active");
     assert!(seed.version.starts_with("seed-"), "{}", seed.version);
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while !car.ready() {
-        assert!(Instant::now() < deadline, "the worker never loaded the seed: {:?}", car.error());
+    let deadline = Instant::now() + Duration::from_secs(300);
+    while !registry.readiness().ready {
+        assert!(Instant::now() < deadline, "not every seed loaded: {}", registry.readiness().reason);
         std::thread::sleep(Duration::from_millis(50));
     }
     let ready = registry.readiness();
-    assert!(ready.ready && ready.reason == "1 of 1 models loaded", "{}", ready.reason);
+    let all = format!("{n} of {n} models loaded", n = shipped.len());
+    assert!(ready.reason == all, "{}", ready.reason);
 
     // A second version (the seed's files under another id), activated by another process.
     store
