@@ -107,7 +107,7 @@ const IDLE_CHECK: Duration = Duration::from_millis(200);
 fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metrics: &Metrics) {
     // 16 clients on two workers of one thread each, batching on: 39 req/s with the count set
     // in `main` only, 67 with one per worker (`udapose-bench service --server-flags='--workers 2
-    // --torch-threads 1'`, 2-core EPYC; `crate::threads`).
+    // --torch-threads 1'`, 2-core Xeon; `crate::threads`).
     if config.torch_threads > 0 {
         crate::threads::pin_torch_threads(config.torch_threads);
     }

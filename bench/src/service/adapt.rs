@@ -52,8 +52,8 @@ pub(super) fn adapt_and_swap(
     let n = args.adapt_clients;
     let flags = flags(args);
     eprintln!("adaptation (--max-batch {} {}), {n} clients", args.max_batch, flags.join(" "));
-    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).collect();
-    let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &flag_refs)?;
+    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).chain(args.server_flags()).collect();
+    let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &flag_refs, true)?;
     let images = Arc::new(images.to_vec());
     for image in images.iter().cycle().take(4) {
         estimate(server.http, image).map_err(|e| anyhow!("warm-up request failed: {e}"))?;

@@ -58,7 +58,7 @@ fn resident(server: &ServerProcess) -> Result<f64> {
 pub(super) fn side_by_side(args: &ServiceArgs, server_bin: &Path, models: &Path) -> Result<Value> {
     let categories = categories(models)?;
     let crops: Vec<Vec<Vec<u8>>> = categories.iter().map(|(c, _)| images(args, c)).collect::<Result<_>>()?;
-    let flags = ["--max-batch", "1"];
+    let flags = [&["--max-batch", "1"][..], &args.server_flags()].concat();
     let clients = args.categories_clients;
     let requests = args.requests * categories.len();
 

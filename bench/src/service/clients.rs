@@ -19,7 +19,7 @@ use serde_json::{Value, json};
 use crate::harness::{Level, Record, ServerProcess, estimate, machine_busy_ticks, percentile, process_ticks};
 
 impl ServerProcess {
-    /// `extra`: more server flags; with any, the server logs at `info` (its own crate) so that
+    /// `extra`: more server flags; `verbose`: the server logs at `info` (its own crate) so that
     /// [`ServerProcess::log`] can report model loads and job events.
     pub(super) fn start(
         binary: &Path,
@@ -27,12 +27,12 @@ impl ServerProcess {
         max_batch: usize,
         max_delay_ms: u64,
         extra: &[&str],
+        verbose: bool,
     ) -> Result<Self> {
-        let tag = if extra.is_empty() { "" } else { "-adapt" };
+        let tag = if verbose { "-adapt" } else { "" };
         let (batch, delay) = (max_batch.to_string(), max_delay_ms.to_string());
         let flags = [&["--max-batch", batch.as_str(), "--max-delay-ms", delay.as_str()], extra].concat();
-        let (server, _grpc) =
-            Self::serve_model(binary, model, &format!("service-{max_batch}{tag}"), &flags, !extra.is_empty())?;
+        let (server, _grpc) = Self::serve_model(binary, model, &format!("service-{max_batch}{tag}"), &flags, verbose)?;
         Ok(server)
     }
 }

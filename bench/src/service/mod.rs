@@ -63,6 +63,10 @@ pub struct ServiceArgs {
     /// A remark on the conditions of the run (e.g. other load), copied into both reports.
     #[arg(long)]
     note: Option<String>,
+    /// More flags for every server this benchmark starts, e.g. `--server-flags='--workers 2
+    /// --torch-threads 1'` (split at whitespace), to compare thread layouts.
+    #[arg(long, allow_hyphen_values = true)]
+    server_flags: Option<String>,
     /// Skip the batching on/off concurrency levels.
     #[arg(long)]
     skip_batching_levels: bool,
@@ -115,6 +119,13 @@ pub struct ServiceArgs {
     categories_clients: usize,
 }
 
+impl ServiceArgs {
+    /// `--server-flags`, split at whitespace.
+    pub(super) fn server_flags(&self) -> Vec<&str> {
+        self.server_flags.as_deref().map_or_else(Vec::new, |f| f.split_whitespace().collect())
+    }
+}
+
 /// One batching mode's name, `--max-batch` and levels.
 type Mode = (&'static str, usize, Vec<Level>);
 
@@ -163,6 +174,7 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
             "load_average_after": load_average(),
         },
         "note": args.note,
+        "server_flags": args.server_flags,
         "model": args.model.display().to_string(),
         "crop": manifest.crop,
         "images": { "folder": args.images.display().to_string(), "distinct": images.len() },
@@ -215,7 +227,8 @@ fn batching_levels(args: &ServiceArgs, server_bin: &Path, model: &Path, images: 
     let mut modes = Vec::new();
     for (name, max_batch) in [("on", args.max_batch), ("off", 1)] {
         eprintln!("batching {name} (--max-batch {max_batch})");
-        let server = ServerProcess::start(server_bin, model, max_batch, args.max_delay_ms, &[])?;
+        let server =
+            ServerProcess::start(server_bin, model, max_batch, args.max_delay_ms, &args.server_flags(), false)?;
         let levels = args
             .concurrency
             .iter()
