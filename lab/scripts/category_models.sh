@@ -3,8 +3,9 @@
 # (models/car/README.md): SynCar-OOD standard rendered for the category, an EfficientNet-Lite0
 # trunk from ImageNet, 4 epochs; then its evaluation on every domain. Every step is cached in
 # $UDAPOSE_CACHE and skipped when done, and training resumes from its last checkpoint, so a rerun
-# (another session) goes on where this one stopped. A model is copied into models/<category>/ by
-# hand, once its evaluation has been read (reports/source-model-<category>.md).
+# (another session) goes on where this one stopped. A model is shipped (models/<category>/ and
+# reports/source-model-<category>.md) by lab/scripts/ship_category.py, once its evaluation has
+# been read.
 #   lab/scripts/category_models.sh [CATEGORY ...]      (default: all five)
 # Needs `make assets-all lite-weights`.
 set -euo pipefail
