@@ -80,14 +80,19 @@ impl Drop for Driver {
 
 #[test]
 fn a_person_uploads_an_image_and_sees_the_angles_and_the_cuboid() {
-    let server = Server::config("web").quick_model().start();
+    // Two categories: the page's selector offers each model the server has (the second is the
+    // quick model again, under another category).
+    let server = Server::config("web").quick_model().quick_model_as("chair").start();
     let image = quick_images("source", 1).remove(0);
     let expected = server.request("POST", "/v1/pose/car", &[], &image.bytes).json();
     let azimuth = expected["estimates"][0]["azimuth_deg"].as_f64().unwrap();
 
     let driver = Driver::start();
     driver.session("POST", "/url", json!({ "url": format!("http://{}/", server.http_addr) }));
-    wait(&driver, "document.querySelectorAll('#category option').length", |v| v.as_u64() == Some(1));
+    wait(&driver, "document.querySelectorAll('#category option').length", |v| v.as_u64() == Some(2));
+    let offered = driver.script("return [...document.querySelectorAll('#category option')].map(o => o.value)");
+    assert_eq!(offered, json!(["car", "chair"]));
+    assert_eq!(driver.script("return document.getElementById('category').value"), "car");
     let input = driver.session("POST", "/element", json!({ "using": "css selector", "value": "#file" }));
     let input = input[ELEMENT].as_str().expect("the file input").to_owned();
     driver.session("POST", &format!("/element/{input}/value"), json!({ "text": image.path.display().to_string() }));
