@@ -52,7 +52,7 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test test-build build venv lite-weights assets assets-all category-models browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build venv lite-weights assets assets-all category-models category-reports browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -121,6 +121,10 @@ assets-all: assets
 CATEGORIES ?=
 category-models: build assets-all $(LITE_WEIGHTS)
 	UDAPOSE_CACHE=$(UDAPOSE_CACHE) LAB=$(BIN)/udapose-lab WEIGHTS=$(LITE_WEIGHTS) lab/scripts/category_models.sh $(CATEGORIES)
+
+# The 3DUDA report of each shipped category but car (reports/syncar-ood-<category>.md).
+category-reports: build assets-all
+	UDAPOSE_CACHE=$(UDAPOSE_CACHE) LAB=$(BIN)/udapose-lab lab/scripts/category_reports.sh $(CATEGORIES)
 
 # Headless Chromium and its WebDriver for the web page's end-to-end test (tests/tests/web.rs).
 # Checked on every run (cheap), so a machine that lost them gets them back.

@@ -1,0 +1,27 @@
+#!/bin/bash
+# The 3DUDA report of each shipped category beside car (the categories issue: combined, occ-l1
+# and the five corruptions of BENCHMARK.md §5, each with the same-budget and the strong oracle):
+# `udapose-lab report --profile standard --category C` on models/C and the category's dataset in
+# $UDAPOSE_CACHE (lab/scripts/category_models.sh renders it). Every stage is cached in
+# $UDAPOSE_CACHE/run/report-standard-C and skipped when done, so a rerun (another session) goes
+# on where this one stopped. The report goes to reports/syncar-ood-C.{json,md} and its PNGs.
+# The global-filter ablation stays car's alone (`--ablation none`): it answers a question about
+# the method, not about the category. About an hour per category on the 2-core CPU.
+#   lab/scripts/category_reports.sh [CATEGORY ...]     (default: every shipped one but car)
+set -euo pipefail
+CACHE=${UDAPOSE_CACHE:-$HOME/.cache/udapose}
+LAB=${LAB:-${CARGO_TARGET_DIR:-$CACHE/target}/release/udapose-lab}
+DOMAINS=combined,occ-l1,corrupt/gaussian_noise,corrupt/glass_blur,corrupt/fog,corrupt/contrast,corrupt/speckle_noise
+categories=("$@")
+if [ ${#categories[@]} -eq 0 ]; then
+  for manifest in models/*/manifest.json; do
+    c=$(basename "$(dirname "$manifest")")
+    [ "$c" = car ] || categories+=("$c")
+  done
+fi
+for c in "${categories[@]}"; do
+  [ -f "models/$c/manifest.json" ] || { echo "no models/$c: ship it first (lab/scripts/ship_category.py $c)" >&2; exit 1; }
+  echo "== $c"
+  "$LAB" report --profile standard --category "$c" --data "$CACHE/data/syncar-ood-standard-$c" \
+    --work "$CACHE/run/report-standard-$c" --domains "$DOMAINS" --ablation none
+done
