@@ -106,8 +106,9 @@ const IDLE_CHECK: Duration = Duration::from_millis(200);
 
 fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metrics: &Metrics) {
     // 16 clients on two workers of one thread each, batching on: 39 req/s with the count set
-    // in `main` only, 67 with one per worker (`udapose-bench service --server-flags='--workers 2
-    // --torch-threads 1'`, 2-core Xeon; `crate::threads`).
+    // in `main` only, 67 with `OMP_NUM_THREADS=1`, which pinning gives each worker without the
+    // environment (`udapose-bench service --server-flags='--workers 2 --torch-threads 1'`,
+    // 2-core Xeon; `crate::threads`).
     if config.torch_threads > 0 {
         crate::threads::pin_torch_threads(config.torch_threads);
     }
@@ -190,8 +191,10 @@ fn collect(rx: &Receiver<Request>, first: Request, config: &WorkerConfig) -> Vec
     let mut batch = vec![first];
     let queued = rx.len();
     let wait = if queued == 0 { Duration::ZERO } else { config.max_delay };
-    let share = (queued + 1).div_ceil(config.workers.max(1)).max(1);
-    let limit = config.max_batch.min(if config.workers > 1 { share } else { config.max_batch });
+    let limit = match config.workers {
+        0 | 1 => config.max_batch,
+        n => config.max_batch.min((queued + 1).div_ceil(n)),
+    };
     let until = Instant::now() + wait;
     while crops < limit {
         match rx.recv_deadline(until) {
@@ -281,9 +284,9 @@ fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
-/// The backbone over the crops, in passes of at most `max_batch`, then the crops' solves in
-/// parallel. Returns each crop's answer and solver time, and the backbone's time.
-/// The backbone on this thread, the solves on `pool` (the global pool where `None`).
+/// The backbone over the crops on this thread, in passes of at most `max_batch`, then the crops'
+/// solves in parallel on `pool` (the global pool where `None`). Returns each crop's answer and
+/// solver time, and the backbone's time.
 fn infer(
     loaded: &Loaded,
     crops: &[&Crop],
