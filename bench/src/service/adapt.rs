@@ -23,7 +23,7 @@ pub(super) const WARM_UP: Duration = Duration::from_secs(3);
 
 /// The adaptation server's flags: no job starts by itself (only the benchmark starts one), and
 /// `--job-nice` when the benchmark is given one.
-fn flags(args: &ServiceArgs) -> Vec<String> {
+pub(super) fn flags(args: &ServiceArgs) -> Vec<String> {
     let mut flags = vec!["--adapt-min-images".to_owned(), "1000000".to_owned()];
     if let Some(nice) = args.job_nice {
         flags.extend(["--job-nice".to_owned(), nice.to_string()]);
@@ -32,7 +32,7 @@ fn flags(args: &ServiceArgs) -> Vec<String> {
 }
 
 /// The load average at each step of the measurement.
-type Loads = Vec<(&'static str, String)>;
+pub(super) type Loads = Vec<(&'static str, String)>;
 
 /// The adaptation server (batching on; only the benchmark starts jobs): `--adapt-clients`
 /// clients idle, then during a job on the uploaded target images; then swaps between the seed
@@ -122,7 +122,7 @@ fn measure_idle(
 }
 
 /// The target images uploaded before the job, and the answers.
-struct Upload {
+pub(super) struct Upload {
     folder: PathBuf,
     sent: usize,
     statuses: BTreeMap<String, usize>,
@@ -132,7 +132,7 @@ struct Upload {
 }
 
 impl Upload {
-    fn send(server: &ServerProcess, folder: PathBuf, targets: &[Vec<u8>]) -> Result<Upload> {
+    pub(super) fn send(server: &ServerProcess, folder: PathBuf, targets: &[Vec<u8>]) -> Result<Upload> {
         eprintln!("  uploading {} target images from {}", targets.len(), folder.display());
         let upload_started = Instant::now();
         let mut statuses = BTreeMap::<String, usize>::new();
@@ -156,10 +156,10 @@ impl Upload {
 /// What the polls of the job saw: when it was first RUNNING, first VALIDATING and last in
 /// either state, with the CPU counters at those polls.
 #[derive(Default)]
-struct Seen {
-    running: Option<Instant>,
-    validating: Option<Instant>,
-    active_until: Option<Instant>,
+pub(super) struct Seen {
+    pub(super) running: Option<Instant>,
+    pub(super) validating: Option<Instant>,
+    pub(super) active_until: Option<Instant>,
     cpu_running: Option<Cpu>,
     cpu_validating: Option<Cpu>,
     cpu_until: Option<Cpu>,
@@ -167,7 +167,11 @@ struct Seen {
 
 /// Starts a job (with the `--adapt-*` overrides) and polls it until it ends; returns its id,
 /// the overrides, its final state and what the polls saw.
-fn run_job(args: &ServiceArgs, server: &ServerProcess, loads: &mut Loads) -> Result<(String, Value, Value, Seen)> {
+pub(super) fn run_job(
+    args: &ServiceArgs,
+    server: &ServerProcess,
+    loads: &mut Loads,
+) -> Result<(String, Value, Value, Seen)> {
     let mut overrides = json!({});
     if let Some(r) = args.adapt_max_rounds {
         overrides["max_rounds"] = json!(r);
@@ -288,7 +292,7 @@ fn adaptation_json(
 }
 
 /// `<data>/combined/adapt/images/<category>` for `--images` `<data>/<domain>/<split>/images/<category>`.
-fn default_adapt_images(images: &Path) -> Result<PathBuf> {
+pub(super) fn default_adapt_images(images: &Path) -> Result<PathBuf> {
     let underivable = || format!("cannot derive --adapt-images from --images {}: pass it", images.display());
     let category = images.file_name().with_context(underivable)?;
     let data = images.ancestors().nth(4).filter(|p| !p.as_os_str().is_empty()).with_context(underivable)?;
@@ -296,7 +300,7 @@ fn default_adapt_images(images: &Path) -> Result<PathBuf> {
 }
 
 /// The adaptation job as the report shows it.
-fn job_json(job: &Value, overrides: &Value, running_s: f64, validating_s: f64) -> Value {
+pub(super) fn job_json(job: &Value, overrides: &Value, running_s: f64, validating_s: f64) -> Value {
     let e = &job["last_event"];
     json!({
         "id": job["job_id"],

@@ -13,6 +13,7 @@ mod adapt;
 mod categories;
 mod ceiling;
 pub(crate) mod clients;
+mod job_sizes;
 mod report;
 mod swap;
 
@@ -104,6 +105,12 @@ pub struct ServiceArgs {
     /// The adaptation server's `--job-nice` (default: the server's own default).
     #[arg(long)]
     job_nice: Option<i32>,
+    /// Target images of the jobs timed on an idle server, one job each.
+    #[arg(long, value_delimiter = ',', default_value = "50,100,200")]
+    job_sizes: Vec<usize>,
+    /// Skip the jobs timed against their number of target images.
+    #[arg(long)]
+    skip_job_sizes: bool,
     /// Rollback/activate round trips measured with clients, and again with none.
     #[arg(long, default_value_t = 3)]
     swap_rounds: usize,
@@ -148,6 +155,12 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
         (Value::Null, Value::Null)
     } else {
         adapt::adapt_and_swap(args, &server_bin, &model, &images)?
+    };
+
+    let job_sizes = if args.skip_job_sizes || args.job_sizes.is_empty() {
+        Value::Null
+    } else {
+        job_sizes::job_sizes(args, &server_bin, &model)?
     };
 
     let side_by_side = match &args.models {
@@ -196,12 +209,14 @@ pub fn run(args: &ServiceArgs) -> Result<()> {
         "failed_requests": failed_requests(&modes, &adaptation) + side_by_side["failed_requests"].as_u64().unwrap_or(0),
         "adaptation": adaptation,
         "swap": swap,
+        "job_sizes": job_sizes,
         "side_by_side": side_by_side,
     });
     write_atomic(&args.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
     let mut md = report::markdown(args, &report, &modes, manifest.crop, ceiling.as_ref(), best);
     md.push_str(&report::adaptation_markdown(&report));
     md.push_str(&report::swap_markdown(&report));
+    md.push_str(&job_sizes::markdown(&report));
     md.push_str(&categories::markdown(&report));
     write_atomic(&args.out.with_extension("md"), md.as_bytes())?;
     eprintln!("wrote {} and its .md", args.out.display());
