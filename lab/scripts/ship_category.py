@@ -1,15 +1,17 @@
 #!/usr/bin/env python3
 """Ships a category's source model, once its evaluation has been read.
 
-    lab/scripts/ship_category.py CATEGORY [--replace]
+    lab/scripts/ship_category.py CATEGORY [--run NAME] [--replace]
 
 Takes what `lab/scripts/category_models.sh CATEGORY` left in $UDAPOSE_CACHE (the model in
-train/<c>-lite0, its evaluation in train/<c>-lite0-eval.json and .md) and writes
+train/<run>, its evaluation in train/<run>-eval.json and .md; the run is <c>-lite0, or
+<c>-lite0-e<epochs> where the category trains for other than 4 epochs) and writes
 models/<c>/ (manifest and safetensors, and a README with the commands and the figures) and
 reports/source-model-<c>.json and .md. Refuses a model whose source-domain Acc@pi/6 is under
 0.85 (the category issue's bar) or larger than 40 MB, and an existing models/<c>/ unless
 --replace (a shipped model is replaced only when a report shows the new one is better).
 """
+import argparse
 import json
 import os
 import shutil
@@ -26,13 +28,16 @@ def fail(message):
 
 
 def main():
-    args = [a for a in sys.argv[1:] if a != "--replace"]
-    if len(args) != 1:
-        fail("usage: ship_category.py CATEGORY [--replace]")
-    category, replace = args[0], "--replace" in sys.argv
+    parser = argparse.ArgumentParser(description="Ships a category's source model.")
+    parser.add_argument("category")
+    parser.add_argument("--run", help="the training run in $UDAPOSE_CACHE/train (default: <category>-lite0)")
+    parser.add_argument("--replace", action="store_true", help="replace an existing models/<category>/")
+    args = parser.parse_args()
+    category, replace = args.category, args.replace
+    run = args.run or f"{category}-lite0"
     cache = Path(os.environ.get("UDAPOSE_CACHE", Path.home() / ".cache/udapose"))
-    model = cache / "train" / f"{category}-lite0"
-    evaluation = cache / "train" / f"{category}-lite0-eval.json"
+    model = cache / "train" / run
+    evaluation = cache / "train" / f"{run}-eval.json"
     for path in [model / f for f in FILES] + [evaluation, evaluation.with_suffix(".md")]:
         if not path.is_file():
             fail(f"{path} is missing: run lab/scripts/category_models.sh {category} first")
@@ -54,7 +59,7 @@ def main():
     staging.mkdir()
     for f in FILES:
         shutil.copyfile(model / f, staging / f)
-    (staging / "README.md").write_text(readme(category, manifest, report, size))
+    (staging / "README.md").write_text(readme(category, run, manifest, report, size))
     if out.exists():
         shutil.rmtree(out)
     staging.rename(out)
@@ -63,7 +68,7 @@ def main():
     print(f"shipped {out} ({size / 1e6:.1f} MB, source Acc@pi/6 {source:.3f}) and reports/source-model-{category}.md")
 
 
-def readme(category, manifest, report, size):
+def readme(category, run, manifest, report, size):
     training = manifest["training"]
     curve = training["validation_curve"]
     domains = report["domains"]
@@ -87,7 +92,7 @@ safetensors ({size / 1e6:.1f} MB). Made with these commands:
 ```sh
 make assets-all lite-weights
 make category-models CATEGORIES={category}     # lab/scripts/category_models.sh: synth, train, eval
-lab/scripts/ship_category.py {category}          # this folder and reports/source-model-{category}.md
+lab/scripts/ship_category.py {category}{'' if run == category + '-lite0' else ' --run ' + run}          # this folder and reports/source-model-{category}.md
 ```
 
 which run
@@ -96,9 +101,9 @@ which run
 udapose-lab synth --profile standard --category {category} --out ~/.cache/udapose/data/syncar-ood-standard-{category}
 udapose-lab train --data ~/.cache/udapose/data/syncar-ood-standard-{category} --arch efficientnet-lite0 \\
     --init-backbone ~/.cache/udapose/weights/efficientnet-lite0-0.1.0.safetensors \\
-    --epochs {training['epochs']} --out ~/.cache/udapose/train/{category}-lite0
-udapose-lab eval --model ~/.cache/udapose/train/{category}-lite0 \\
-    --data ~/.cache/udapose/data/syncar-ood-standard-{category} --out ~/.cache/udapose/train/{category}-lite0-eval.json
+    --epochs {training['epochs']} --out ~/.cache/udapose/train/{run}
+udapose-lab eval --model ~/.cache/udapose/train/{run} \\
+    --data ~/.cache/udapose/data/syncar-ood-standard-{category} --out ~/.cache/udapose/train/{run}-eval.json
 ```
 
 Validation curve on `source/val` (in the manifest), epoch by epoch: Acc@π/6 {epochs}; Acc@π/18
