@@ -97,8 +97,8 @@ struct Args {
     max_decoded_mib: u64,
     /// Inference worker threads per category, each with its own model copy (0: one per core, at
     /// most 4). Workers of one libtorch thread each beat one worker of every core under load
-    /// (2-core Xeon, 16 clients: 54.8 against 39.8 req/s) and lose on a lone stream (p50 38
-    /// against 31 ms); and a server whose workers keep every core busy leaves an adaptation job,
+    /// (2-core Xeon, 16 clients: 54.8 against 40.5 req/s) and lose on a lone stream (p50 38
+    /// against 32 ms); and a server whose workers keep every core busy leaves an adaptation job,
     /// at its lower priority, almost nothing (one round in 480 s under 4 clients, against five in
     /// 80 s with one worker): reports/service.md, reports/service-workers.md.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(0..=64))]
