@@ -16,7 +16,8 @@ WEIGHTS=${WEIGHTS:-$CACHE/weights/efficientnet-lite0-0.1.0.safetensors}
 categories=("$@")
 [ ${#categories[@]} -gt 0 ] || categories=(aeroplane bus chair sofa diningtable)
 # Epochs per category: 4 as for car; chairs reached only 0.833 source Acc@pi/6 on test after 4
-# (validation 0.48, 0.66, 0.83, 0.83 with the loss still falling), so they get 8.
+# (validation 0.48, 0.66, 0.83, 0.83 with the loss still falling; reports/source-model-chair-e4.md),
+# so they get 8.
 epochs_of() {
   case $1 in
     chair) echo 8 ;;
