@@ -27,7 +27,7 @@ impl RuntimeInfo {
             torch_threads: tch::get_num_threads(),
             torch_interop_threads: tch::get_num_interop_threads(),
             rayon_threads: rayon::current_num_threads(),
-            cpus: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            cpus: cores(),
         }
     }
 
@@ -35,6 +35,11 @@ impl RuntimeInfo {
     pub fn device(&self) -> tch::Device {
         if self.cuda_available { tch::Device::Cuda(0) } else { tch::Device::Cpu }
     }
+}
+
+/// The cores this process may use (the cgroup's quota and the affinity mask included), at least 1.
+pub fn cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
 /// The CPU's model name (from /proc/cpuinfo), for benchmark reports.

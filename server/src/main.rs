@@ -181,7 +181,7 @@ async fn main() -> Result<()> {
     init_tracing();
     let args = Args::parse();
     let tokens = tokens(&args)?;
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = udapose_engine::runtime::cores();
     let workers = if args.workers > 0 { args.workers as usize } else { cores.min(4) };
     let torch_threads = if args.torch_threads > 0 { args.torch_threads as usize } else { (cores / workers).max(1) };
     tch::set_num_threads(torch_threads as i32);

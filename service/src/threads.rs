@@ -21,7 +21,7 @@ pub fn solver_pool(workers: usize, name: &str) -> Option<rayon::ThreadPool> {
     if workers <= 1 {
         return None;
     }
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = udapose_engine::runtime::cores();
     let prefix = name.to_owned();
     rayon::ThreadPoolBuilder::new()
         .num_threads((cores / workers).max(1))

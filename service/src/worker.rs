@@ -43,6 +43,21 @@ pub struct WorkerConfig {
     pub torch_threads: usize,
 }
 
+#[cfg(test)]
+impl WorkerConfig {
+    /// One worker on the CPU, no batching, a small queue: what the unit tests serve with.
+    pub(crate) fn for_tests() -> Self {
+        WorkerConfig {
+            workers: 1,
+            max_batch: 1,
+            max_delay: Duration::ZERO,
+            queue_depth: 4,
+            device: Device::Cpu,
+            torch_threads: 0,
+        }
+    }
+}
+
 /// One request's work: a decoded image and its boxes.
 pub struct Request {
     pub pixels: Pixels,

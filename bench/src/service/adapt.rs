@@ -21,14 +21,24 @@ use crate::harness::{Level, Record, ServerProcess, estimate, load_average, post_
 /// the server starts can be much slower than the rest.
 pub(super) const WARM_UP: Duration = Duration::from_secs(3);
 
-/// The adaptation server's flags: no job starts by itself (only the benchmark starts one), and
-/// `--job-nice` when the benchmark is given one.
+/// The adaptation server's flags: no job starts by itself (only the benchmark starts one),
+/// `--job-nice` when the benchmark is given one, then `--server-flags`.
 pub(super) fn flags(args: &ServiceArgs) -> Vec<String> {
     let mut flags = vec!["--adapt-min-images".to_owned(), "1000000".to_owned()];
     if let Some(nice) = args.job_nice {
         flags.extend(["--job-nice".to_owned(), nice.to_string()]);
     }
+    flags.extend(args.server_flags().into_iter().map(str::to_owned));
     flags
+}
+
+/// The target images' folder: `--adapt-images`, or the `combined` domain's adapt split next to
+/// `--images`.
+pub(super) fn target_folder(args: &ServiceArgs) -> Result<PathBuf> {
+    match &args.adapt_images {
+        Some(f) => Ok(f.clone()),
+        None => default_adapt_images(&args.images),
+    }
 }
 
 /// The load average at each step of the measurement.
@@ -44,15 +54,12 @@ pub(super) fn adapt_and_swap(
     model: &Path,
     images: &[Vec<u8>],
 ) -> Result<(Value, Value)> {
-    let folder = match &args.adapt_images {
-        Some(f) => f.clone(),
-        None => default_adapt_images(&args.images)?,
-    };
+    let folder = target_folder(args)?;
     let targets = read_images(&folder, args.adapt_count)?;
     let n = args.adapt_clients;
     let flags = flags(args);
     eprintln!("adaptation (--max-batch {} {}), {n} clients", args.max_batch, flags.join(" "));
-    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).chain(args.server_flags()).collect();
+    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).collect();
     let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &flag_refs, true)?;
     let images = Arc::new(images.to_vec());
     for image in images.iter().cycle().take(4) {
@@ -292,7 +299,7 @@ fn adaptation_json(
 }
 
 /// `<data>/combined/adapt/images/<category>` for `--images` `<data>/<domain>/<split>/images/<category>`.
-pub(super) fn default_adapt_images(images: &Path) -> Result<PathBuf> {
+fn default_adapt_images(images: &Path) -> Result<PathBuf> {
     let underivable = || format!("cannot derive --adapt-images from --images {}: pass it", images.display());
     let category = images.file_name().with_context(underivable)?;
     let data = images.ancestors().nth(4).filter(|p| !p.as_os_str().is_empty()).with_context(underivable)?;

@@ -11,15 +11,12 @@ use super::{
     ServiceArgs,
     adapt::{self, Upload},
 };
-use crate::harness::{ServerProcess, load_average, read_images};
+use crate::harness::{ServerProcess, read_images};
 
 pub(super) fn job_sizes(args: &ServiceArgs, server_bin: &Path, model: &Path) -> Result<Value> {
-    let folder = match &args.adapt_images {
-        Some(f) => f.clone(),
-        None => adapt::default_adapt_images(&args.images)?,
-    };
+    let folder = adapt::target_folder(args)?;
     let flags = adapt::flags(args);
-    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).chain(args.server_flags()).collect();
+    let flag_refs: Vec<&str> = flags.iter().map(String::as_str).collect();
     let mut jobs = Vec::new();
     for &n in &args.job_sizes {
         let targets = read_images(&folder, n)?;
@@ -30,7 +27,7 @@ pub(super) fn job_sizes(args: &ServiceArgs, server_bin: &Path, model: &Path) -> 
         let server = ServerProcess::start(server_bin, model, args.max_batch, args.max_delay_ms, &flag_refs, true)?;
         Upload::send(&server, folder.clone(), &targets)?;
         let started = Instant::now();
-        let mut loads = vec![("start", load_average())];
+        let mut loads = Vec::new();
         let (id, overrides, job, seen) = adapt::run_job(args, &server, &mut loads)?;
         let total = started.elapsed().as_secs_f64();
         let (Some(from), Some(to)) = (seen.running, seen.active_until) else {
@@ -40,6 +37,7 @@ pub(super) fn job_sizes(args: &ServiceArgs, server_bin: &Path, model: &Path) -> 
         let mut report = adapt::job_json(&job, &overrides, (split - from).as_secs_f64(), (to - split).as_secs_f64());
         report["target_images"] = json!(n);
         report["wall_seconds"] = json!(total);
+        report["load_average"] = loads.iter().map(|(k, v)| ((*k).to_owned(), json!(v))).collect();
         eprintln!("  {n} images: {} after {total:.1} s ({} rounds)", job["state"], report["rounds"]);
         jobs.push(report);
     }

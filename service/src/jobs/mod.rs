@@ -112,7 +112,7 @@ impl Jobs {
                 priority::lower_this_thread(nice);
                 // Every core for the job's own libtorch work, at its lower priority, whatever
                 // count the inference workers were given.
-                crate::threads::pin_torch_threads(std::thread::available_parallelism().map_or(1, |n| n.get()));
+                crate::threads::pin_torch_threads(udapose_engine::runtime::cores());
             })
             .build()
             .context("building the adaptation jobs' thread pool")?;

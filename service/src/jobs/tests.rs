@@ -58,14 +58,7 @@ fn images(n: usize) -> Vec<Vec<u8>> {
 fn setup(name: &str) -> (PathBuf, Store, Arc<Registry>) {
     let dir = scratch(name);
     let store = Store::in_memory(&dir).unwrap();
-    let workers = WorkerConfig {
-        workers: 1,
-        max_batch: 1,
-        max_delay: Duration::ZERO,
-        queue_depth: 4,
-        device: Device::Cpu,
-        torch_threads: 0,
-    };
+    let workers = WorkerConfig::for_tests();
     let registry = Arc::new(Registry::start(store.clone(), &models(), &workers, Arc::new(Metrics::new())).unwrap());
     (dir, store, registry)
 }

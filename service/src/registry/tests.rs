@@ -3,8 +3,6 @@
 
 use std::time::Instant;
 
-use tch::Device;
-
 use super::*;
 
 fn scratch(name: &str) -> PathBuf {
@@ -12,17 +10,6 @@ fn scratch(name: &str) -> PathBuf {
     let _ = fs::remove_dir_all(&dir);
     fs::create_dir_all(&dir).unwrap();
     dir
-}
-
-fn workers() -> WorkerConfig {
-    WorkerConfig {
-        workers: 1,
-        max_batch: 1,
-        max_delay: Duration::ZERO,
-        queue_depth: 4,
-        device: Device::Cpu,
-        torch_threads: 0,
-    }
 }
 
 fn shipped_models() -> PathBuf {
@@ -33,7 +20,9 @@ fn shipped_models() -> PathBuf {
 fn seeds_are_served_then_swapped_refused_when_stale_and_rolled_back() {
     let dir = scratch("swap");
     let store = Store::in_memory(&dir.join("cache")).unwrap();
-    let registry = Registry::start(store.clone(), &shipped_models(), &workers(), Arc::new(Metrics::new())).unwrap();
+    let registry =
+        Registry::start(store.clone(), &shipped_models(), &WorkerConfig::for_tests(), Arc::new(Metrics::new()))
+            .unwrap();
     // Every shipped category is served, in name order.
     let mut shipped: Vec<String> = fs::read_dir(shipped_models())
         .unwrap()
@@ -93,7 +82,7 @@ fn a_category_that_cannot_load_is_not_ready_and_says_why() {
     fs::create_dir_all(seeds.join("chair")).unwrap();
     fs::copy(shipped_models().join("car").join(MANIFEST), seeds.join("chair").join(MANIFEST)).unwrap();
     let store = Store::in_memory(&dir.join("cache")).unwrap();
-    let registry = Registry::start(store, &seeds, &workers(), Arc::new(Metrics::new())).unwrap();
+    let registry = Registry::start(store, &seeds, &WorkerConfig::for_tests(), Arc::new(Metrics::new())).unwrap();
     let bus = registry.get("bus").expect("the failed seed is still listed");
     assert!(bus.active().is_none() && !bus.ready());
     assert!(bus.error().is_some_and(|e| !e.is_empty()), "{:?}", bus.error());
