@@ -28,6 +28,7 @@
 //! on source images (`reports/solver.md`). [`AdamConfig::fixed`] with no pruning is the fixed schedule.
 
 mod caster;
+mod dot;
 mod gradient;
 mod grid;
 mod optimise;
@@ -168,7 +169,11 @@ impl<'a> FeatureMap<'a> {
                 data.len()
             )));
         }
-        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+        // A branch-free pass first (it vectorises; `position` alone cost a tenth of the
+        // image's preparation), the position only for the message.
+        if data.iter().fold(false, |bad, v| bad | !v.is_finite())
+            && let Some(i) = data.iter().position(|v| !v.is_finite())
+        {
             return Err(EngineError::InvalidInput(format!("feature value {i} is not finite")));
         }
         Ok(FeatureMap { data, dim, height, width })
@@ -372,14 +377,22 @@ impl<'a> Problem<'a> {
         Ok(self.covered_loss(grid::covered(&frags, self.mesh.faces())))
     }
 
-    /// `L` of a render given as the cells it covers, in raster order (the one summation both
-    /// [`Problem::loss`] and [`GridRenders::losses`] use, so the two agree bit for bit).
+    /// `L` of a render given as the cells it covers, in raster order.
     fn covered_loss(&self, covered: impl Iterator<Item = grid::Covered>) -> f64 {
+        self.covered_sum(
+            covered
+                .map(|c| (c.pixel, c.vertices.map(|v| self.similarity.get(c.pixel as usize, v as usize)), c.weights)),
+        )
+    }
+
+    /// `L` from each covered cell's index, its face's similarities and weights, in raster
+    /// order: the one summation of [`Problem::loss`]'s rasteriser path and
+    /// [`GridRenders::losses`], so the two agree bit for bit.
+    fn covered_sum(&self, covered: impl Iterator<Item = (u32, [f32; 3], [f32; 3])>) -> f64 {
         let mut sum = 0.0f64;
-        for grid::Covered { pixel, vertices: [a, b, c], weights: w } in covered {
+        for (pixel, s, w) in covered {
             let p = pixel as usize;
-            let sim = |v: u32| self.similarity.get(p, v as usize);
-            let obj = w[0] * sim(a) + w[1] * sim(b) + w[2] * sim(c);
+            let obj = w[0] * s[0] + w[1] * s[1] + w[2] * s[2];
             sum += f64::from(obj.max(self.clutter[p]) - self.clutter_pos[p]);
         }
         1.0 - (self.base + sum) / self.pixels as f64
@@ -473,19 +486,24 @@ pub fn grid_losses(problem: &Problem, config: &SolverConfig) -> Result<Vec<Score
 /// Greedy in loss order: keep a pose when it is at least `min_separation` (geodesic) from every
 /// pose already kept, until `k` are kept. Ties keep the earlier pose.
 pub fn select_distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> Vec<ScoredPose> {
+    distant(scored, k, min_separation).into_iter().map(|i| scored[i]).collect()
+}
+
+/// [`select_distant`]'s choice as places in `scored`.
+fn distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> Vec<usize> {
     let mut order: Vec<usize> = (0..scored.len()).collect();
     order.sort_by(|&i, &j| scored[i].loss.total_cmp(&scored[j].loss).then(i.cmp(&j)));
-    let mut kept: Vec<(ScoredPose, nalgebra::Matrix3<f64>)> = Vec::with_capacity(k);
+    let mut kept: Vec<(usize, nalgebra::Matrix3<f64>)> = Vec::with_capacity(k);
     for i in order {
         if kept.len() == k {
             break;
         }
         let r = scored[i].pose.rotation();
         if kept.iter().all(|(_, q)| rotation_error(q, &r) >= min_separation) {
-            kept.push((scored[i], r));
+            kept.push((i, r));
         }
     }
-    kept.into_iter().map(|(s, _)| s).collect()
+    kept.into_iter().map(|(i, _)| i).collect()
 }
 
 /// Render and compare (METHOD.md §6) on a prepared image: [`multi_pose_init`], then each of the
