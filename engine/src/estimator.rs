@@ -144,6 +144,12 @@ impl PoseSolver {
     /// [`PoseSolver::solve`] and the whole grid it started from (the gate's score margin
     /// reads it); the same estimate.
     pub fn solve_with_grid(&self, features: &Features) -> Result<(Estimate, Vec<ScoredPose>)> {
+        if rayon::current_thread_index().is_none() {
+            // Called from outside a pool, each parallel step of the solve (five) would hand its
+            // work to a pool thread and sleep until woken, about a fifth of the solve's time on
+            // one thread (`reports/solver.md`): one hand-off for the whole solve instead.
+            return rayon::scope(|_| self.solve_with_grid(features));
+        }
         let problem = self.problem(features)?;
         let grid = self.grid_losses(&problem)?;
         Ok((solve_from_grid(&problem, &grid, &self.config)?, grid))

@@ -334,7 +334,16 @@ struct Udapose {
 
 /// Phase 2: udapose's solvers (its default, stage by stage; then the fixed schedule, METHOD's
 /// 300 steps and the default rasterised) on those features.
+///
+/// The solves run on rayon's pool, as the server's do (`Estimator::estimate_all_in`) and as
+/// `PoseSolver::solve` moves itself: the stages timed one by one from outside the pool would
+/// each hand their parallel steps to a pool thread and wait to be woken, a cost that is not
+/// the solver's.
 fn udapose_phase(solver: &PoseSolver, others: [&PoseSolver; 3], images: &[Image]) -> Result<Vec<Udapose>> {
+    rayon::scope(|_| udapose_phase_on_pool(solver, others, images))
+}
+
+fn udapose_phase_on_pool(solver: &PoseSolver, others: [&PoseSolver; 3], images: &[Image]) -> Result<Vec<Udapose>> {
     solver.solve(&images[0].features)?; // warm-up
     let progress = bar(images.len(), "udapose");
     let mut out = Vec::with_capacity(images.len());
