@@ -184,6 +184,9 @@ struct Run<'a> {
     torch_threads: i32,
 }
 
+/// Images per turn of udapose and the reference (about 45 s of the reference on one core).
+const TURN: usize = 30;
+
 pub fn run(args: &SolverArgs) -> Result<()> {
     if args.images == 0 {
         bail!("--images must be at least 1");
@@ -222,17 +225,24 @@ pub fn run(args: &SolverArgs) -> Result<()> {
     let grid = solver.camera().at_stride(solver.config.stride)?;
 
     let images = backbone_phase(&model, &samples, args.images, &grid, total)?;
-    let fast = udapose_phase(&solver, [&fixed_solver, &method_solver, &raster_solver], &images)?;
-    // The reference under its own torch thread count (switched once: switching per call stalls
-    // libtorch's thread pool).
-    tch::set_num_threads(args.reference_torch_threads);
-    let reference_run = reference_phase(&solver, &mesh_model, &reference_config, &images);
-    tch::set_num_threads(torch_threads);
+    // udapose and the reference take turns, a chunk of images each: the reference's 15 minutes
+    // would otherwise run after udapose's 30 seconds, and a shared host whose speed drifts
+    // (one run measured every phase 20-60% slower than the run before) would skew the ratio.
+    let (mut fast, mut reference_run) = (Vec::new(), Vec::new());
+    for chunk in images.chunks(TURN) {
+        fast.extend(udapose_phase(&solver, [&fixed_solver, &method_solver, &raster_solver], chunk)?);
+        // The reference under its own torch thread count (switched per turn, not per call:
+        // switching per call stalls libtorch's thread pool).
+        tch::set_num_threads(args.reference_torch_threads);
+        let turn = reference_phase(&solver, &mesh_model, &reference_config, chunk);
+        tch::set_num_threads(torch_threads);
+        reference_run.extend(turn?);
+    }
 
     let rows: Vec<Row> = images
         .into_iter()
         .zip(fast)
-        .zip(reference_run?)
+        .zip(reference_run)
         .map(|((image, udapose), (reference, reference_inits))| Row {
             name: image.name,
             truth: image.truth,
