@@ -165,3 +165,45 @@ fn transpose(features: &[f32], dim: usize, pixels: usize) -> Vec<f32> {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Channel-major features `D × P` that differ with `seed`.
+    fn features(dim: usize, pixels: usize, seed: f32) -> Vec<f32> {
+        (0..dim * pixels).map(|i| (i as f32 * 0.37 + seed).sin()).collect()
+    }
+
+    /// A memo handed on to the next image (same size, so from the pool) answers that image's
+    /// entries, never the last image's, whether an entry is computed, memoised or computed in
+    /// a pair.
+    #[test]
+    fn a_pooled_memo_forgets_the_last_image() {
+        let (dim, pixels, vertices) = (130, 37, 5);
+        let vertex_features: Vec<f32> = (0..vertices * dim).map(|i| (i as f32 * 0.11).cos()).collect();
+        let expected = |f: &[f32], p: usize, v: usize| {
+            let pixel: Vec<f32> = (0..dim).map(|d| f[d * pixels + p]).collect();
+            (Kernels::detect().dot)(&pixel, &vertex_features[v * dim..(v + 1) * dim])
+        };
+        for seed in [0.0, 1.0, 2.0] {
+            let f = features(dim, pixels, seed);
+            let s = Similarity::new(&f, pixels, &vertex_features, dim);
+            for p in 0..pixels {
+                for v in 0..vertices {
+                    let x = expected(&f, p, v);
+                    assert_eq!(s.get(p, v).to_bits(), x.to_bits(), "seed {seed}, pixel {p}, vertex {v}");
+                    assert_eq!(s.get(p, v).to_bits(), x.to_bits(), "memoised: seed {seed}");
+                }
+            }
+            let mut out = vec![0.0; 3];
+            s.compute(&[1, 1, 4], &[0, 9, 36], &mut out);
+            let pairs = [expected(&f, 0, 1), expected(&f, 9, 1), expected(&f, 36, 4)];
+            assert_eq!(
+                out.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                pairs.map(f32::to_bits),
+                "computed: seed {seed}"
+            );
+        }
+    }
+}
