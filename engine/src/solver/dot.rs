@@ -8,9 +8,9 @@
 //! The forms: AVX2 + FMA (four 8-wide FMA chains, 32 products a step), and a portable one with
 //! eight lanes for any other CPU and for the tail past the last full step. One chain made a
 //! 128-long dot product latency-bound; the compiler's own vectorisation of lane arrays used
-//! 2-wide loads. An AVX-512 form (four 16-wide chains) was no faster on the Xeon the reports
-//! were measured on (the grid's entries are bound by loading the features, not by the FMAs),
-//! so it was left out.
+//! 2-wide loads. The lanes are summed in registers, in the portable form's order. An AVX-512 form (four
+//! 16-wide chains) was no faster on a Xeon that has it (a probe, not a report: the grid's
+//! entries are bound by loading the features, not by the FMAs), so it was left out.
 
 /// `a·b`.
 pub(super) type Dot = fn(&[f32], &[f32]) -> f32;

@@ -487,24 +487,19 @@ pub fn grid_losses(problem: &Problem, config: &SolverConfig) -> Result<Vec<Score
 /// Greedy in loss order: keep a pose when it is at least `min_separation` (geodesic) from every
 /// pose already kept, until `k` are kept. Ties keep the earlier pose.
 pub fn select_distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> Vec<ScoredPose> {
-    distant(scored, k, min_separation).into_iter().map(|i| scored[i]).collect()
-}
-
-/// [`select_distant`]'s choice as places in `scored`.
-fn distant(scored: &[ScoredPose], k: usize, min_separation: f64) -> Vec<usize> {
     let mut order: Vec<usize> = (0..scored.len()).collect();
     order.sort_by(|&i, &j| scored[i].loss.total_cmp(&scored[j].loss).then(i.cmp(&j)));
-    let mut kept: Vec<(usize, nalgebra::Matrix3<f64>)> = Vec::with_capacity(k);
+    let mut kept: Vec<(ScoredPose, nalgebra::Matrix3<f64>)> = Vec::with_capacity(k);
     for i in order {
         if kept.len() == k {
             break;
         }
         let r = scored[i].pose.rotation();
         if kept.iter().all(|(_, q)| rotation_error(q, &r) >= min_separation) {
-            kept.push((i, r));
+            kept.push((scored[i], r));
         }
     }
-    kept.into_iter().map(|(i, _)| i).collect()
+    kept.into_iter().map(|(s, _)| s).collect()
 }
 
 /// Render and compare (METHOD.md §6) on a prepared image: [`multi_pose_init`], then each of the
