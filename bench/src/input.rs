@@ -38,6 +38,10 @@ pub struct InputArgs {
     /// --max-batch default).
     #[arg(long, default_value_t = 8)]
     max_batch: usize,
+    /// Also writes each test image here (e.g. to time another decoder on the same files:
+    /// lab/scripts/libjpeg_turbo_input.py).
+    #[arg(long)]
+    save_images: Option<PathBuf>,
 }
 
 /// A photograph-like test image: smooth shading, edges and ±`noise` levels of sensor-like noise
@@ -120,6 +124,11 @@ fn measure(args: &InputArgs) -> Result<()> {
     ];
     for (w, h, noise, format) in images {
         let bytes = photo(w, h, noise, format)?;
+        if let Some(dir) = &args.save_images {
+            let ext = format.extensions_str()[0];
+            std::fs::create_dir_all(dir)?;
+            write_atomic(&dir.join(format!("{w}x{h}-noise{noise}.{ext}")), &bytes)?;
+        }
         let header = Header::read(&bytes, limits)?;
         let r = input::max_reduction(w as usize, h as usize, &[], size);
         let name = format!("{w}x{h} {}", format.extensions_str()[0].to_uppercase());
