@@ -79,7 +79,7 @@ def markdown(r):
     lines = [
         "# JPEG input: udapose's decoder beside libjpeg-turbo",
         "",
-        f"`lab/scripts/libjpeg_turbo_input.py` (commit `{r['commit']}`, {r['machine']}, one thread): "
+        f"`lab/scripts/libjpeg_turbo_input.py` (commit `{r['commit']}`, {r['machine']}): "
         "`udapose-bench input` (reports/input.md) and, on the same files right after it, libjpeg-turbo's "
         f"reduced-size decode through Pillow {r['pillow']} (`draft`: DCT scaling at 1/r, r the bench's "
         f"reduction); medians of {r['repeats']} runs. One backbone pass in this run: "
