@@ -19,5 +19,7 @@ pub mod train;
 pub use camera::{Camera, Pose, View};
 pub use error::{EngineError, Result};
 pub use mesh::{Cuboid, Mesh};
-pub use metrics::{PoseMetrics, pose_error, rotation_error};
+pub use metrics::{
+    PoseMetrics, UpSymmetry, canonical_azimuth, pose_error, pose_error_up_to, rotation_error, rotation_error_up_to,
+};
 pub use raster::{Fragments, Rasterizer};

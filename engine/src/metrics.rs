@@ -5,7 +5,7 @@ use std::f64::consts::PI;
 use nalgebra::Matrix3;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::rotation;
+use crate::camera::{rot_z, rotation};
 use crate::error::{EngineError, Result};
 
 /// Geodesic angle between two rotations, `‖logm(R_predᵀ R_gt)‖_F / √2`, in radians.
@@ -29,6 +29,65 @@ pub fn pose_error(pred: Option<[f64; 3]>, gt: [f64; 3]) -> f64 {
             rotation_error(&rotation(a, e, t), &rotation(gt[0], gt[1], gt[2]))
         }
         _ => PI,
+    }
+}
+
+/// How an object repeats itself about its up axis (the mesh's z): rotations about it that leave
+/// it looking the same, so that a pose is only defined up to them. A rectangular table is
+/// `Order(2)` (front and back alike), a square one `Order(4)`, a round one `Continuous`; a car
+/// is `Order(1)`, no symmetry. Poses are scored up to it ([`pose_error_up_to`]) and labels are
+/// put into one representative for training ([`canonical_azimuth`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum UpSymmetry {
+    Order(u32),
+    Continuous,
+}
+
+impl UpSymmetry {
+    pub const NONE: UpSymmetry = UpSymmetry::Order(1);
+}
+
+/// [`rotation_error`] up to `symmetry`: the smallest error over the rotations `R_gt·Rz(δ)` that
+/// look like `R_gt`. For the continuous case the best δ is closed-form: with `Q = R_predᵀ R_gt`,
+/// `tr(Q·Rz(δ)) = (q00 + q11) cos δ + (q01 − q10) sin δ + q22`, largest at the amplitude.
+pub fn rotation_error_up_to(pred: &Matrix3<f64>, gt: &Matrix3<f64>, symmetry: UpSymmetry) -> f64 {
+    match symmetry {
+        UpSymmetry::Order(n) if n > 1 => (0..n)
+            .map(|k| rotation_error(pred, &(gt * rot_z(2.0 * PI * f64::from(k) / f64::from(n)))))
+            .fold(PI, f64::min),
+        UpSymmetry::Order(_) => rotation_error(pred, gt),
+        UpSymmetry::Continuous => {
+            let q = pred.transpose() * gt;
+            let trace = (q[(0, 0)] + q[(1, 1)]).hypot(q[(0, 1)] - q[(1, 0)]) + q[(2, 2)];
+            let angle = ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+            if angle.is_finite() { angle } else { PI }
+        }
+    }
+}
+
+/// [`pose_error`] up to `symmetry`.
+pub fn pose_error_up_to(pred: Option<[f64; 3]>, gt: [f64; 3], symmetry: UpSymmetry) -> f64 {
+    match pred {
+        Some([a, e, t]) if a.is_finite() && e.is_finite() && t.is_finite() => {
+            rotation_error_up_to(&rotation(a, e, t), &rotation(gt[0], gt[1], gt[2]), symmetry)
+        }
+        _ => PI,
+    }
+}
+
+/// The one azimuth that stands for all that look alike under `symmetry`, so that images which
+/// look the same are trained with the same label: the azimuth moved into `[−π/n, π/n)` for
+/// `Order(n)`, 0 for `Continuous`. (Turning the object by δ about its up axis is the azimuth
+/// moved by δ: `R(a, e, θ)·Rz(−δ) = R(a + δ, e, θ)`.)
+pub fn canonical_azimuth(azimuth: f64, symmetry: UpSymmetry) -> f64 {
+    match symmetry {
+        UpSymmetry::Order(n) if n > 1 => {
+            let period = 2.0 * PI / f64::from(n);
+            azimuth - period * ((azimuth + period / 2.0) / period).floor()
+        }
+        UpSymmetry::Order(_) => azimuth,
+        UpSymmetry::Continuous => 0.0,
     }
 }
 

@@ -109,3 +109,39 @@ fn paired_bootstrap_resamples_the_same_images_for_every_model() {
     assert!(paired_bootstrap(100, 1000, 0, |idx| (idx[0] < 5).then_some(1.0)).is_none());
     assert!(paired_bootstrap(0, 1000, 0, |_| Some(1.0)).is_none());
 }
+
+#[test]
+fn errors_up_to_a_symmetry_about_the_up_axis() {
+    use udapose_engine::{UpSymmetry, canonical_azimuth, pose_error_up_to};
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for _ in 0..500 {
+        let gt = [rng.random_range(-PI..PI), rng.random_range(-1.5..1.5), rng.random_range(-PI..PI)];
+        let pred = [rng.random_range(-PI..PI), rng.random_range(-1.5..1.5), rng.random_range(-PI..PI)];
+        let plain = pose_error(Some(pred), gt);
+        assert_eq!(pose_error_up_to(Some(pred), gt, UpSymmetry::NONE), plain);
+        // More symmetry never scores worse, and each score is the smallest over its turns.
+        let [half, quarter, round] = [UpSymmetry::Order(2), UpSymmetry::Order(4), UpSymmetry::Continuous]
+            .map(|s| pose_error_up_to(Some(pred), gt, s));
+        assert!(half <= plain && quarter <= half && round <= quarter + 1e-9, "{plain} {half} {quarter} {round}");
+        let turned = |d: f64| pose_error(Some([pred[0] + d, pred[1], pred[2]]), gt);
+        assert!((half - turned(0.0).min(turned(PI))).abs() < 1e-12);
+        let scan = (0..3600).map(|i| turned(2.0 * PI * f64::from(i) / 3600.0)).fold(PI, f64::min);
+        assert!(round <= scan + 1e-9 && scan - round < 2e-3, "closed form {round}, scan {scan}");
+        // An estimate turned by a symmetry about the up axis is right; any other error stays.
+        let [a, e, t] = gt;
+        assert!(pose_error_up_to(Some([a + PI, e, t]), gt, UpSymmetry::Order(2)) < 1e-7);
+        assert!(pose_error_up_to(Some([a + PI / 2.0, e, t]), gt, UpSymmetry::Order(4)) < 1e-7);
+        assert!((pose_error_up_to(Some([a + PI / 2.0, e, t]), gt, UpSymmetry::Order(2)) - PI / 2.0).abs() < 1e-7);
+        let de = rng.random_range(-0.5..0.5);
+        let r = pose_error_up_to(Some([a + rng.random_range(-PI..PI), e + de, t]), gt, UpSymmetry::Continuous);
+        assert!((r - de.abs()).abs() < 1e-6, "round, elevation off by {de}: {r}");
+        // The canonical azimuth is in its window and looks the same as the original.
+        for (s, half_window) in [(UpSymmetry::Order(2), PI / 2.0), (UpSymmetry::Order(4), PI / 4.0)] {
+            let c = canonical_azimuth(a, s);
+            assert!((-half_window..half_window).contains(&c), "{a} -> {c}");
+            assert!(pose_error_up_to(Some([c, e, t]), gt, s) < 1e-7);
+        }
+        assert_eq!(canonical_azimuth(a, UpSymmetry::NONE), a);
+        assert_eq!(canonical_azimuth(a, UpSymmetry::Continuous), 0.0);
+    }
+}
