@@ -21,7 +21,7 @@ use udapose_engine::estimator::{self, Features, PoseSolver};
 use udapose_engine::solver::{AdamConfig, Optimizer, Prune, SolverConfig};
 use udapose_engine::{Pose, checkpoint, pose_error};
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::load_sample;
+use udapose_lab::loader::{Sample, load_sample};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -97,7 +97,7 @@ fn features(
     for name in splits.split(',') {
         let split = SyncarSplit::open(data, domain, name)?;
         for i in 0..per_split.min(split.len()) {
-            let (pixels, truth, h, w, _) = load_sample(&split, i)?;
+            let Sample { pixels, pose: truth, height: h, width: w, .. } = load_sample(&split, i)?;
             let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
             let f = estimator::features(&model.backbone, &image)?.pop().context("no features")?;
             out.push((f, truth));

@@ -16,7 +16,7 @@ use udapose_engine::adapt::{
 use udapose_engine::checkpoint::{self, Manifest, Model};
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::{load_annotated, load_image_folder};
+use udapose_lab::loader::{load_annotated, load_image_folder, training_pose, up_symmetry};
 
 /// Settings shared by `adapt` and `finetune` (defaults: [`AdaptConfig::default`]).
 #[derive(clap::Args, Clone, Debug, Default)]
@@ -268,8 +268,9 @@ pub fn finetune_split(
             bail!("{name}: image is {iw}x{ih}, the model's crop is {w}x{h}");
         }
         pixels.extend(p);
+        let pose = training_pose(a.pose.pose(), up_symmetry(&split, &a));
         let occluded = a.occluder.map(|m| m.data.iter().map(|&v| v != 0).collect());
-        labels.push(Label { pose: a.pose.pose(), occluded });
+        labels.push(Label { pose, occluded });
     }
     let images = Tensor::from_slice(&pixels).reshape([labels.len() as i64, 3, h as i64, w as i64]);
     let masked = labels.iter().filter(|l| l.occluded.is_some()).count();

@@ -103,8 +103,8 @@ fn time_models(entries: &[Entry], data: &Path, n: usize) -> Result<Vec<(f64, f64
     let split = SyncarSplit::open(data, "source", "test")?;
     let mut samples = vec![(Vec::new(), Vec::new()); entries.len()];
     for i in 0..n.min(split.len()) {
-        let (pixels, _, h, w, _) = load_sample(&split, i)?;
-        let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+        let s = load_sample(&split, i)?;
+        let image = Tensor::from_slice(&s.pixels).reshape([1, 3, s.height as i64, s.width as i64]);
         for (e, (backbone, total)) in entries.iter().zip(samples.iter_mut()) {
             let started = Instant::now();
             let features = estimator::features(&e.model.backbone, &image)?;

@@ -11,9 +11,9 @@ use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
-use udapose_engine::{PoseMetrics, pose_error};
+use udapose_engine::{PoseMetrics, pose_error_up_to};
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::load_sample;
+use udapose_lab::loader::{Sample, load_sample};
 use udapose_lab::synth::all_domains;
 
 #[derive(clap::Args)]
@@ -111,7 +111,7 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
     };
     let firing = FiringTest::new(&estimator.model.neural_mesh, solver.camera(), solver.config.stride, threshold)?;
     for i in 0..n {
-        let (pixels, pose, ih, iw, _) = load_sample(&split, i)?;
+        let Sample { pixels, pose, height: ih, width: iw, symmetry, .. } = load_sample(&split, i)?;
         if (ih, iw) != (h, w) {
             bail!("{name}: images are {iw}x{ih}, the model's crop is {w}x{h}");
         }
@@ -119,7 +119,7 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         let features = estimator.batch_features(&image)?;
         let estimate = solver.solve(&features[0]).ok();
         let angles = estimate.as_ref().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
-        out.errors.push(pose_error(angles, [pose.azimuth, pose.elevation, pose.theta]));
+        out.errors.push(pose_error_up_to(angles, [pose.azimuth, pose.elevation, pose.theta], symmetry));
         out.azimuths_deg.push(pose.azimuth.to_degrees());
         out.fired.push(firing.fired_ratio(&features[0], &pose)?);
         if let Some(e) = estimate {

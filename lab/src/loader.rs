@@ -9,8 +9,9 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use udapose_engine::Pose;
+use udapose_engine::{Pose, UpSymmetry, canonical_azimuth};
 
+use crate::assets::category::Category;
 use crate::datasets::syncar::{Annotation, SyncarSplit};
 
 /// One batch: images as RGB `f32` in [0, 1], N×3×H×W (channel-major, as a network takes them).
@@ -32,10 +33,33 @@ impl Batch {
     }
 }
 
-/// Decodes one sample: its image as planar RGB in [0, 1] and its ground-truth pose.
-pub fn load_sample(split: &SyncarSplit, index: usize) -> Result<(Vec<f32>, Pose, usize, usize, String)> {
+/// A decoded sample: its image as planar RGB in [0, 1] (3×H×W), its ground-truth pose, its name
+/// and how its object repeats itself about the up axis (poses are scored up to that).
+pub struct Sample {
+    pub pixels: Vec<f32>,
+    pub pose: Pose,
+    pub height: usize,
+    pub width: usize,
+    pub name: String,
+    pub symmetry: UpSymmetry,
+}
+
+pub fn load_sample(split: &SyncarSplit, index: usize) -> Result<Sample> {
     let (pixels, a, name) = load_annotated(split, index)?;
-    Ok((pixels, a.pose.pose(), a.pose.height, a.pose.width, name))
+    let symmetry = up_symmetry(split, &a);
+    Ok(Sample { pixels, pose: a.pose.pose(), height: a.pose.height, width: a.pose.width, name, symmetry })
+}
+
+/// How the object of an annotation of `split` repeats itself about its up axis
+/// ([`Category::up_symmetry`]; none for a category this build does not know).
+pub fn up_symmetry(split: &SyncarSplit, a: &Annotation) -> UpSymmetry {
+    Category::from_name(split.category()).map_or(UpSymmetry::NONE, |c| c.up_symmetry(&a.car))
+}
+
+/// `pose` with the one azimuth that stands for all that look alike under `symmetry`: what
+/// training fits, so that images which look the same are not given labels 180° apart.
+pub fn training_pose(pose: Pose, symmetry: UpSymmetry) -> Pose {
+    Pose { azimuth: canonical_azimuth(pose.azimuth, symmetry), ..pose }
 }
 
 /// Decodes one sample: its image as planar RGB in [0, 1], its whole annotation and its name.
@@ -140,16 +164,17 @@ fn produce(split: &SyncarSplit, order: &[usize], batch_size: usize, tx: &SyncSen
     }
 }
 
-fn assemble(samples: Vec<(Vec<f32>, Pose, usize, usize, String)>) -> Result<Batch> {
-    let (height, width) = (samples[0].2, samples[0].3);
-    if samples.iter().any(|s| (s.2, s.3) != (height, width)) {
+/// A training batch: the samples' images and their [`training_pose`]s.
+fn assemble(samples: Vec<Sample>) -> Result<Batch> {
+    let (height, width) = (samples[0].height, samples[0].width);
+    if samples.iter().any(|s| (s.height, s.width) != (height, width)) {
         bail!("a batch mixes image sizes");
     }
     let mut batch = Batch { height, width, images: Vec::new(), poses: Vec::new(), names: Vec::new() };
-    for (pixels, pose, _, _, name) in samples {
-        batch.images.extend(pixels);
-        batch.poses.push(pose);
-        batch.names.push(name);
+    for s in samples {
+        batch.images.extend(s.pixels);
+        batch.poses.push(training_pose(s.pose, s.symmetry));
+        batch.names.push(s.name);
     }
     Ok(batch)
 }

@@ -19,7 +19,7 @@ use udapose_engine::mesh::TARGET_VERTICES;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
 use udapose_engine::train::{self, LearningRates, Progress, Schedule, SourceTraining, TrainConfig, VertexStatistics};
-use udapose_engine::{Camera, Cuboid, PoseMetrics, pose_error};
+use udapose_engine::{Camera, Cuboid, PoseMetrics, pose_error_up_to};
 use udapose_lab::augment::Photometric;
 use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::{Batch, Loader};
@@ -319,12 +319,14 @@ fn validate(
     let n = if limit == 0 { val.len() } else { limit.min(val.len()) };
     let mut errors = Vec::with_capacity(n);
     for i in 0..n {
-        let (pixels, pose, h, w, _) = udapose_lab::loader::load_sample(val, i)?;
-        let image = Tensor::from_slice(&pixels).reshape([1, 3, h as i64, w as i64]);
+        let s = udapose_lab::loader::load_sample(val, i)?;
+        let (pose, h, w) = (s.pose, s.height, s.width);
+        let image = Tensor::from_slice(&s.pixels).reshape([1, 3, h as i64, w as i64]);
         let features = estimator::features(backbone, &image)?;
         let estimate = solver.solve(&features[0]);
         let gt = [pose.azimuth, pose.elevation, pose.theta];
-        errors.push(pose_error(estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]), gt));
+        let angles = estimate.ok().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
+        errors.push(pose_error_up_to(angles, gt, s.symmetry));
     }
     Ok(PoseMetrics::from_errors(&errors)?)
 }

@@ -107,7 +107,8 @@ fn car_top5_fraction(channels_reversed: bool, n: usize) -> f64 {
     let cars = Tensor::from_slice(&CAR_CLASSES);
     let mut hits = 0;
     for i in 0..n {
-        let (pixels, _, h, w, _) = udapose_lab::loader::load_sample(&split, i).unwrap();
+        let udapose_lab::loader::Sample { pixels, height: h, width: w, .. } =
+            udapose_lab::loader::load_sample(&split, i).unwrap();
         let mut image = Tensor::from_slice(&pixels).view([1, 3, h as i64, w as i64]);
         if channels_reversed {
             image = image.flip([1]);

@@ -234,13 +234,13 @@ fn measure_domain(
     let load = |indices: &[usize]| -> Result<(Tensor, Vec<Pose>, Vec<String>)> {
         let (mut pixels, mut truth, mut names) = (Vec::new(), Vec::new(), Vec::new());
         for &i in indices {
-            let (p, pose, ih, iw, name) = load_sample(&split, i)?;
-            if (ih, iw) != (h, w) {
-                bail!("{domain}: images are {iw}x{ih}, the model's crop is {w}x{h}");
+            let s = load_sample(&split, i)?;
+            if (s.height, s.width) != (h, w) {
+                bail!("{domain}: images are {}x{}, the model's crop is {w}x{h}", s.width, s.height);
             }
-            pixels.extend(p);
-            truth.push(pose);
-            names.push(name);
+            pixels.extend(s.pixels);
+            truth.push(s.pose);
+            names.push(s.name);
         }
         Ok((Tensor::from_slice(&pixels).reshape([names.len() as i64, 3, h as i64, w as i64]), truth, names))
     };

@@ -21,7 +21,7 @@ use udapose_engine::metrics::paired_bootstrap;
 use udapose_engine::solver::{AdamConfig, Estimate, NeuralMeshView, Optimizer, Prune, SolverConfig, solve_from_grid};
 use udapose_engine::{Pose, pose_error};
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::load_sample;
+use udapose_lab::loader::{Sample, load_sample};
 use udapose_testkit::reference::{self, ReferenceConfig};
 
 use crate::harness::{self, load_average};
@@ -308,7 +308,7 @@ fn backbone_phase(
     let each = samples.iter().flat_map(|(name, split)| (0..per_split).map(move |i| (*name, split, i)));
     for (k, (split_name, split, i)) in each.enumerate() {
         let t = Instant::now();
-        let (pixels, truth, ih, iw, name) = load_sample(split, i)?;
+        let Sample { pixels, pose: truth, height: ih, width: iw, name, .. } = load_sample(split, i)?;
         let image = Tensor::from_slice(&pixels).reshape([1, 3, ih as i64, iw as i64]);
         let load_ms = ms_since(t);
         let name = if samples.len() > 1 { format!("{split_name}/{name}") } else { name };

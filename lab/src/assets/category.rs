@@ -5,6 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
+use udapose_engine::UpSymmetry;
 
 use super::flightgear::{self, Front, Model};
 use super::mesh::TexturedMesh;
@@ -85,6 +86,33 @@ impl Category {
             Category::Chair => "chair",
             Category::Sofa => "sofa",
             Category::Diningtable => "diningtable",
+        }
+    }
+
+    /// The category called `name` (as [`Category::name`] spells it).
+    pub fn from_name(name: &str) -> Option<Category> {
+        Category::ALL.into_iter().find(|c| c.name() == name)
+    }
+
+    /// How `model` (its name in datasets) repeats itself about its up axis, read off
+    /// `reports/syncar-preview/diningtable-orientation.png`: a dining table's long side is put to
+    /// the front, so a rectangular one looks the same turned by 180°, a square one and a round top
+    /// on four legs or feet by 90°, a round top on a round foot or under a cloth by any angle.
+    /// The other categories have a front of their own.
+    pub fn up_symmetry(self, model: &str) -> UpSymmetry {
+        match (self, model) {
+            (Category::Diningtable, "BlendSwap-CC-BY/cafe_set_mota_table" | "BlendSwap-CC-0/tableWithTablecloth") => {
+                UpSymmetry::Continuous
+            }
+            (
+                Category::Diningtable,
+                "BlendSwap-CC-0/oakTable"
+                | "BlendSwap-CC-BY/cafe_set_tonon_table"
+                | "KatorLegaz/cafe-table"
+                | "Scopia/round-table",
+            ) => UpSymmetry::Order(4),
+            (Category::Diningtable, _) => UpSymmetry::Order(2),
+            _ => UpSymmetry::NONE,
         }
     }
 
@@ -234,6 +262,26 @@ mod tests {
         let mut m = TexturedMesh { positions: vec![[1.0, 2.0, 3.0]], ..Default::default() };
         to_canonical(&mut m, [1.0, 0.0, 0.0]);
         assert_eq!(m.positions[0], [-3.0, -1.0, 2.0]);
+    }
+
+    #[test]
+    fn only_dining_tables_repeat_themselves_about_the_up_axis() {
+        use crate::loader::training_pose;
+        use udapose_engine::Pose;
+        for c in Category::ALL {
+            assert_eq!(Category::from_name(c.name()), Some(c));
+            assert_eq!(c.up_symmetry("Lib/a_model") == UpSymmetry::NONE, c != Category::Diningtable, "{c:?}");
+        }
+        let table = |m: &str| Category::Diningtable.up_symmetry(m);
+        assert_eq!(table("Scopia/table4"), UpSymmetry::Order(2));
+        assert_eq!(table("Scopia/round-table"), UpSymmetry::Order(4));
+        assert_eq!(table("BlendSwap-CC-0/tableWithTablecloth"), UpSymmetry::Continuous);
+        // Training sees one azimuth for the look-alikes; nothing else of the pose changes.
+        let pose = Pose::new(3.0, 0.2, -0.1, 5.0);
+        let turned = training_pose(pose, table("Scopia/table4"));
+        assert!((turned.azimuth - (3.0 - std::f64::consts::PI)).abs() < 1e-12);
+        assert_eq!((turned.elevation, turned.theta, turned.distance), (0.2, -0.1, 5.0));
+        assert_eq!(training_pose(pose, Category::Car.up_symmetry("car1")), pose);
     }
 
     #[test]

@@ -238,6 +238,11 @@ impl SyncarSplit {
         &self.paths
     }
 
+    /// The category whose samples these are (`lists/<category>/`).
+    pub fn category(&self) -> &str {
+        self.paths.list.parent().and_then(|p| p.file_name()).and_then(|n| n.to_str()).unwrap_or(CATEGORY)
+    }
+
     pub fn entries(&self) -> &[SyncarEntry] {
         &self.entries
     }
