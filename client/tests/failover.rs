@@ -117,18 +117,22 @@ struct Replica {
     fake: Fake,
     addr: SocketAddr,
     running: Option<(oneshot::Sender<()>, JoinHandle<()>)>,
+    /// While stopped, the port held bound (not listening) so that a replica another test starts
+    /// is not handed it; best effort, as a port in TIME_WAIT cannot be bound this way.
+    held: Option<tokio::net::TcpSocket>,
 }
 
 impl Replica {
     fn start(name: &'static str) -> Replica {
         let fake = Fake { name, counters: Arc::default() };
-        let mut replica = Replica { fake, addr: "127.0.0.1:0".parse().unwrap(), running: None };
+        let mut replica = Replica { fake, addr: "127.0.0.1:0".parse().unwrap(), running: None, held: None };
         replica.restart();
         replica
     }
 
     /// Starts (again) on the same port (std sets SO_REUSEADDR, so the port is free at once).
     fn restart(&mut self) {
+        self.held = None;
         let listener = std::net::TcpListener::bind(self.addr).unwrap();
         listener.set_nonblocking(true).unwrap();
         self.addr = listener.local_addr().unwrap();
@@ -156,6 +160,7 @@ impl Replica {
         if let Some((kill, thread)) = self.running.take() {
             let _ = kill.send(());
             thread.join().unwrap();
+            self.held = refusing_port(self.addr).ok();
         }
     }
 
@@ -177,6 +182,14 @@ impl Drop for Replica {
     fn drop(&mut self) {
         self.stop();
     }
+}
+
+/// A bound port nothing listens on: connections to it are refused, and without SO_REUSEADDR no
+/// other socket can bind it while it is held.
+fn refusing_port(addr: SocketAddr) -> std::io::Result<tokio::net::TcpSocket> {
+    let socket = tokio::net::TcpSocket::new_v4()?;
+    socket.bind(addr)?;
+    Ok(socket)
 }
 
 async fn client(replicas: &[&Replica], retries: u32) -> Client {
@@ -283,11 +296,13 @@ async fn an_overloaded_endpoint_sends_the_call_to_another_at_once() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn with_every_endpoint_down_a_call_fails_after_bounded_retries() {
-    // Refused connections: a clear error, soon.
-    let [mut a, mut b] = [Replica::start("a"), Replica::start("b")];
-    a.stop();
-    b.stop();
-    let options = ClientOptions { endpoints: vec![a.endpoint(), b.endpoint()], ..ClientOptions::new("") };
+    // Refused connections: a clear error, soon. The ports are held bound but not listening, so
+    // a replica that another test starts meanwhile cannot be handed one of them (a stopped
+    // replica's freed port was, once, and this test connected to it).
+    let any = "127.0.0.1:0".parse().unwrap();
+    let held = [refusing_port(any).unwrap(), refusing_port(any).unwrap()];
+    let [a, b] = held.each_ref().map(|socket| socket.local_addr().unwrap().to_string());
+    let options = ClientOptions { endpoints: vec![a.clone(), b.clone()], ..ClientOptions::new("") };
     let err = Client::connect_with(options.clone()).await.expect_err("connected to nothing");
     assert!(matches!(err, udapose_client::Error::Connect { .. }), "{err:?}");
     let lazy = Client::connect_with(ClientOptions { eager: false, retries: 2, ..options }).await.unwrap();
@@ -297,7 +312,7 @@ async fn with_every_endpoint_down_a_call_fails_after_bounded_retries() {
     assert_eq!(err.code(), Some(Code::Unavailable), "{err}");
     assert!(elapsed < Duration::from_secs(5), "{elapsed:?}");
     let message = err.to_string();
-    assert!(message.contains(&a.endpoint()) && message.contains(&b.endpoint()), "{message}");
+    assert!(message.contains(&a) && message.contains(&b), "{message}");
     eprintln!("all endpoints down: {message} ({elapsed:?})");
 
     // Overloaded everywhere: each endpoint tried, then `retries` more tries after a pause.
