@@ -20,6 +20,7 @@ pub use camera::{Camera, Pose, View};
 pub use error::{EngineError, Result};
 pub use mesh::{Cuboid, Mesh};
 pub use metrics::{
-    PoseMetrics, UpSymmetry, canonical_azimuth, pose_error, pose_error_up_to, rotation_error, rotation_error_up_to,
+    PoseMetrics, UpSymmetry, canonical_azimuth, nearest_look_alike, pose_error, pose_error_up_to, rotation_error,
+    rotation_error_up_to,
 };
 pub use raster::{Fragments, Rasterizer};

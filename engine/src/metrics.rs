@@ -49,21 +49,39 @@ impl UpSymmetry {
 }
 
 /// [`rotation_error`] up to `symmetry`: the smallest error over the rotations `R_gt·Rz(δ)` that
-/// look like `R_gt`. For the continuous case the best δ is closed-form: with `Q = R_predᵀ R_gt`,
-/// `tr(Q·Rz(δ)) = (q00 + q11) cos δ + (q01 − q10) sin δ + q22`, largest at the amplitude.
+/// look like `R_gt`.
 pub fn rotation_error_up_to(pred: &Matrix3<f64>, gt: &Matrix3<f64>, symmetry: UpSymmetry) -> f64 {
+    rotation_error(pred, &(gt * rot_z(look_alike_turn(pred, gt, symmetry))))
+}
+
+/// The turn δ about the up axis that brings `R_gt·Rz(δ)`, a rotation that looks like `R_gt`,
+/// closest to `R_pred`. For the continuous case it is closed-form: with `Q = R_predᵀ R_gt`,
+/// `tr(Q·Rz(δ)) = (q00 + q11) cos δ + (q01 − q10) sin δ + q22`, largest at `atan2` of the two.
+fn look_alike_turn(pred: &Matrix3<f64>, gt: &Matrix3<f64>, symmetry: UpSymmetry) -> f64 {
     match symmetry {
-        UpSymmetry::Order(n) if n > 1 => (0..n)
-            .map(|k| rotation_error(pred, &(gt * rot_z(2.0 * PI * f64::from(k) / f64::from(n)))))
-            .fold(PI, f64::min),
-        UpSymmetry::Order(_) => rotation_error(pred, gt),
+        UpSymmetry::Order(n) if n > 1 => {
+            (0..n)
+                .map(|k| 2.0 * PI * f64::from(k) / f64::from(n))
+                .map(|delta| (rotation_error(pred, &(gt * rot_z(delta))), delta))
+                .fold((f64::INFINITY, 0.0), |best, e| if e.0 < best.0 { e } else { best })
+                .1
+        }
+        UpSymmetry::Order(_) => 0.0,
         UpSymmetry::Continuous => {
             let q = pred.transpose() * gt;
-            let trace = (q[(0, 0)] + q[(1, 1)]).hypot(q[(0, 1)] - q[(1, 0)]) + q[(2, 2)];
-            let angle = ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
-            if angle.is_finite() { angle } else { PI }
+            let delta = (q[(0, 1)] - q[(1, 0)]).atan2(q[(0, 0)] + q[(1, 1)]);
+            if delta.is_finite() { delta } else { 0.0 }
         }
     }
+}
+
+/// The pose that looks like `gt` under `symmetry` and lies closest to `pred` (all
+/// `[azimuth, elevation, theta]`): where a label-based check of an estimate must put the
+/// object, as the estimate cannot tell `gt` from its look-alikes. (`R(a, e, θ)·Rz(δ) =
+/// R(a − δ, e, θ)`.)
+pub fn nearest_look_alike(pred: [f64; 3], gt: [f64; 3], symmetry: UpSymmetry) -> [f64; 3] {
+    let delta = look_alike_turn(&rotation(pred[0], pred[1], pred[2]), &rotation(gt[0], gt[1], gt[2]), symmetry);
+    [gt[0] - delta, gt[1], gt[2]]
 }
 
 /// [`pose_error`] up to `symmetry`.

@@ -112,7 +112,7 @@ fn paired_bootstrap_resamples_the_same_images_for_every_model() {
 
 #[test]
 fn errors_up_to_a_symmetry_about_the_up_axis() {
-    use udapose_engine::{UpSymmetry, canonical_azimuth, pose_error_up_to};
+    use udapose_engine::{UpSymmetry, canonical_azimuth, nearest_look_alike, pose_error_up_to};
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     for _ in 0..500 {
         let gt = [rng.random_range(-PI..PI), rng.random_range(-1.5..1.5), rng.random_range(-PI..PI)];
@@ -127,6 +127,14 @@ fn errors_up_to_a_symmetry_about_the_up_axis() {
         assert!((half - turned(0.0).min(turned(PI))).abs() < 1e-12);
         let scan = (0..3600).map(|i| turned(2.0 * PI * f64::from(i) / 3600.0)).fold(PI, f64::min);
         assert!(round <= scan + 1e-9 && scan - round < 2e-3, "closed form {round}, scan {scan}");
+        // The nearest look-alike is one (it scores as gt) and the estimate's error to it is the
+        // error up to the symmetry.
+        for s in [UpSymmetry::NONE, UpSymmetry::Order(2), UpSymmetry::Order(4), UpSymmetry::Continuous] {
+            let twin = nearest_look_alike(pred, gt, s);
+            assert!(pose_error_up_to(Some(twin), gt, s) < 1e-7, "{s:?}: {twin:?} does not look like {gt:?}");
+            let up_to = pose_error_up_to(Some(pred), gt, s);
+            assert!((pose_error(Some(pred), twin) - up_to).abs() < 1e-9, "{s:?}");
+        }
         // An estimate turned by a symmetry about the up axis is right; any other error stays.
         let [a, e, t] = gt;
         assert!(pose_error_up_to(Some([a + PI, e, t]), gt, UpSymmetry::Order(2)) < 1e-7);

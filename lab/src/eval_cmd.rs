@@ -6,14 +6,15 @@ use anyhow::{Context, Result, bail};
 use serde_json::json;
 use tch::Tensor;
 use udapose_engine::adapt::{AdaptConfig, FiringTest, Threshold};
+use udapose_engine::camera::Pose;
 use udapose_engine::checkpoint;
 use udapose_engine::estimator::Estimator;
 use udapose_engine::metrics::MetricIntervals;
 use udapose_engine::runtime::RuntimeInfo;
 use udapose_engine::solver::SolverConfig;
-use udapose_engine::{PoseMetrics, pose_error_up_to};
+use udapose_engine::{PoseMetrics, nearest_look_alike, pose_error_up_to};
 use udapose_lab::datasets::syncar::SyncarSplit;
-use udapose_lab::loader::{Sample, load_sample};
+use udapose_lab::loader::{Sample, load_sample, training_pose};
 use udapose_lab::synth::all_domains;
 
 #[derive(clap::Args)]
@@ -121,9 +122,14 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         let angles = estimate.as_ref().map(|e| [e.pose.azimuth, e.pose.elevation, e.pose.theta]);
         out.errors.push(pose_error_up_to(angles, [pose.azimuth, pose.elevation, pose.theta], symmetry));
         out.azimuths_deg.push(pose.azimuth.to_degrees());
-        out.fired.push(firing.fired_ratio(&features[0], &pose)?);
+        // Fired at the pose the mesh was trained on; false matches against the look-alike of the
+        // truth nearest the estimate (for a symmetric object, the labels cannot tell them apart).
+        out.fired.push(firing.fired_ratio(&features[0], &training_pose(pose, symmetry))?);
         if let Some(e) = estimate {
-            let (fired, wrong) = firing.false_matches(&features[0], &e.pose, &pose)?;
+            let estimated = [e.pose.azimuth, e.pose.elevation, e.pose.theta];
+            let [azimuth, ..] = nearest_look_alike(estimated, [pose.azimuth, pose.elevation, pose.theta], symmetry);
+            let truth = Pose { azimuth, ..pose };
+            let (fired, wrong) = firing.false_matches(&features[0], &e.pose, &truth)?;
             out.fired_matches += fired;
             out.false_matches += wrong;
         }
