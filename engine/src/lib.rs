@@ -13,6 +13,7 @@ pub mod mesh;
 pub mod metrics;
 pub mod raster;
 pub mod runtime;
+pub mod signature;
 pub mod solver;
 pub mod train;
 

@@ -7,6 +7,7 @@ mod doctor;
 mod eval_cmd;
 mod plot;
 mod report_cmd;
+mod route_cmd;
 mod synth_cmd;
 mod train_cmd;
 
@@ -44,6 +45,9 @@ enum Command {
     /// Source models side by side: accuracy from their eval reports, size, τ_r, fired ratios and
     /// costs measured in one run → reports/source-models.json and .md.
     Compare(compare_cmd::Args),
+    /// Route each test image to the domain whose adapt images it resembles, by image statistics
+    /// alone (per-domain experts' probe) → a confusion table.
+    Route(route_cmd::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -57,5 +61,6 @@ fn main() -> anyhow::Result<()> {
         Command::Finetune(args) => adapt_cmd::run_finetune(&args),
         Command::Report(args) => report_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
+        Command::Route(args) => route_cmd::run(&args),
     }
 }
