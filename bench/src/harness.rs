@@ -67,6 +67,12 @@ pub(crate) fn read_images(dir: &Path, n: usize) -> Result<Vec<Vec<u8>>> {
     paths.iter().map(|p| fs::read(p).with_context(|| format!("reading {}", p.display()))).collect()
 }
 
+/// The log filter of a server whose log a bench reads: its model loads and swaps are logged by
+/// the service library (`udapose_service`), its start by the binary. (With the binary's alone,
+/// as before the library split, the swap and load lines were filtered out and the reports said
+/// "0 model loads".)
+pub(crate) const SERVER_LOG: &str = "warn,udapose_server=info,udapose_service=info";
+
 /// A `udapose-server` on free loopback ports with a scratch models dir and store.
 pub(crate) struct ServerProcess {
     pub(crate) child: Child,
@@ -141,7 +147,7 @@ impl ServerProcess {
             .arg("--store")
             .arg(dir.join("state"))
             .args(flags)
-            .env("RUST_LOG", if verbose { "warn,udapose_server=info" } else { "warn" });
+            .env("RUST_LOG", if verbose { SERVER_LOG } else { "warn" });
         Ok((Self::spawn(command, dir, http)?, grpc))
     }
 

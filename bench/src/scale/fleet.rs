@@ -125,7 +125,7 @@ impl Fleet {
             .env("AWS_SECRET_ACCESS_KEY", SECRET)
             .env("AWS_REGION", "us-east-1")
             .env_remove("UDAPOSE_S3_ENDPOINT")
-            .env("RUST_LOG", "warn,udapose_server=info");
+            .env("RUST_LOG", crate::harness::SERVER_LOG);
         let started = Instant::now();
         let server = ServerProcess::spawn(command, dir, addrs[0]).with_context(|| format!("starting {name}"))?;
         Ok(Node { name: name.into(), grpc: addrs[1], server, ready_s: started.elapsed().as_secs_f64() })
