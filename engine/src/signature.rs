@@ -5,8 +5,8 @@
 //!
 //! Corruptions (blur, fog, noise, contrast) separate almost perfectly; domains that differ in
 //! content rather than in image statistics (occlusion, textures, scenes) do not, so a signature
-//! says where an image *may* belong, and [`routed_share`] on a set's own images says whether it
-//! is distinct enough from the others for routing to be worth it.
+//! says where an image *may* belong; the share of a set's own images [`route`] sends back to it
+//! says whether the set is distinct enough from the others for routing to be worth it.
 
 use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
@@ -144,10 +144,4 @@ pub fn route(signatures: &[&Signature], stats: &[f64; STATS]) -> Option<usize> {
             _ => Some((i, l)),
         })
         .map(|(i, _)| i)
-}
-
-/// The share of `images` (their statistics) that [`route`] sends to `signatures[own]`.
-pub fn routed_share(signatures: &[&Signature], own: usize, images: &[[f64; STATS]]) -> f64 {
-    let hits = images.iter().filter(|s| route(signatures, s) == Some(own)).count();
-    hits as f64 / images.len().max(1) as f64
 }

@@ -125,8 +125,7 @@ fn domain_errors(estimator: &Estimator, args: &Args, name: &str, threshold: Thre
         // Fired at the pose the mesh was trained on; false matches against the look-alike of the
         // truth nearest the estimate (for a symmetric object, the labels cannot tell them apart).
         out.fired.push(firing.fired_ratio(&features[0], &training_pose(pose, symmetry))?);
-        if let Some(e) = estimate {
-            let estimated = [e.pose.azimuth, e.pose.elevation, e.pose.theta];
+        if let (Some(e), Some(estimated)) = (estimate, angles) {
             let [azimuth, ..] = nearest_look_alike(estimated, [pose.azimuth, pose.elevation, pose.theta], symmetry);
             let truth = Pose { azimuth, ..pose };
             let (fired, wrong) = firing.false_matches(&features[0], &e.pose, &truth)?;
