@@ -3,7 +3,7 @@
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use udapose_engine::signature::{STATS, Signature, image_stats, route};
+use udapose_engine::signature::{Domain, STATS, Signature, image_stats, pick, route};
 
 const H: usize = 32;
 const W: usize = 80;
@@ -79,21 +79,23 @@ fn statistics_move_with_blur_and_haze() {
     }
 }
 
+/// `n` images' statistics of domain `k`: 0 clear, 1 blurred, 2 hazy.
+fn domain(rng: &mut ChaCha8Rng, k: usize, n: usize) -> Vec<[f64; STATS]> {
+    (0..n)
+        .map(|_| {
+            let image = clear(rng);
+            stats(&match k {
+                0 => image,
+                1 => blurred(&image),
+                _ => hazy(&image),
+            })
+        })
+        .collect()
+}
+
 #[test]
 fn images_are_routed_to_the_domain_they_come_from() {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
-    let domain = |rng: &mut ChaCha8Rng, k: usize, n: usize| -> Vec<[f64; STATS]> {
-        (0..n)
-            .map(|_| {
-                let image = clear(rng);
-                stats(&match k {
-                    0 => image,
-                    1 => blurred(&image),
-                    _ => hazy(&image),
-                })
-            })
-            .collect()
-    };
     let fitted: Vec<Signature> = (0..3).map(|k| Signature::fit(&domain(&mut rng, k, 40)).unwrap()).collect();
     let signatures: Vec<&Signature> = fitted.iter().collect();
     for k in 0..3 {
@@ -122,4 +124,43 @@ fn signatures_survive_json_and_refuse_bad_input() {
     assert!(Signature::fit(&vec![sample[0]; 30]).is_err(), "identical images");
     assert!(image_stats(&[0.5; 3 * 3 * 3], [3, 3]).is_err(), "too small");
     assert!(image_stats(&[0.5; 10], [H, W]).is_err(), "wrong length");
+}
+
+#[test]
+fn a_domain_takes_its_own_images_and_refuses_others() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let blur = Domain::fit(&domain(&mut rng, 1, 60), 0.95).unwrap();
+    let haze = Domain::fit(&domain(&mut rng, 2, 60), 0.95).unwrap();
+    let share = |k: usize, d: &Domain, rng: &mut ChaCha8Rng| {
+        domain(rng, k, 60).iter().filter(|s| d.accepts(s).is_some()).count() as f64 / 60.0
+    };
+    // Fresh images of its own domain pass the bound about as often as it was set for;
+    // clear images, whose statistics no domain was fitted on, are refused by both.
+    assert!(share(1, &blur, &mut rng) >= 0.8, "blur takes {}", share(1, &blur, &mut rng));
+    assert!(share(2, &haze, &mut rng) >= 0.8, "haze takes {}", share(2, &haze, &mut rng));
+    assert!(share(0, &blur, &mut rng) <= 0.05 && share(0, &haze, &mut rng) <= 0.05);
+    assert!(share(2, &blur, &mut rng) <= 0.05 && share(1, &haze, &mut rng) <= 0.05);
+    // `pick` sends a blurred image to blur, a clear one to none.
+    let (b, c) = (domain(&mut rng, 1, 20), domain(&mut rng, 0, 1)[0]);
+    let picked = b.iter().filter(|s| pick(&[&haze, &blur], s) == Some(1)).count();
+    assert!(picked >= 16, "{picked} of 20 blurred images picked blur");
+    assert_eq!(pick(&[&haze, &blur], &c), None);
+    assert_eq!(pick(&[], &c), None);
+    // A domain fitted on clear and blurred images alike takes some blurred ones; a rival
+    // fitted on blurred images keeps those, and leaves the clear ones to the domain.
+    let mut broad = domain(&mut rng, 0, 40);
+    broad.extend(domain(&mut rng, 1, 20));
+    let mut broad = Domain::fit(&broad, 0.95).unwrap();
+    let blurred_taken =
+        |d: &Domain, rng: &mut ChaCha8Rng| domain(rng, 1, 40).iter().filter(|s| d.accepts(s).is_some()).count();
+    assert!(blurred_taken(&broad, &mut rng) >= 20, "{}", blurred_taken(&broad, &mut rng));
+    broad.rival = Some(blur.signature.clone());
+    assert!(blurred_taken(&broad, &mut rng) <= 2, "{}", blurred_taken(&broad, &mut rng));
+    assert!(share(0, &broad, &mut rng) >= 0.8, "{}", share(0, &broad, &mut rng));
+    // Coverage 1 keeps every fitted image; a coverage outside (0, 1] is refused.
+    let fitted = domain(&mut rng, 2, 30);
+    let all = Domain::fit(&fitted, 1.0).unwrap();
+    assert!(fitted.iter().all(|s| all.accepts(s).is_some()));
+    assert!(Domain::fit(&fitted[..16], 0.9).is_err(), "a fold's rest is too small to fit");
+    assert!(Domain::fit(&fitted, 0.0).is_err() && Domain::fit(&fitted, 1.5).is_err());
 }
