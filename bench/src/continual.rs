@@ -7,7 +7,8 @@
 //! - `none`: no adaptation (the seed's accuracy, measured once);
 //! - `independent`: `--no-regression-sets`, each job judged on its own held-out images only
 //!   (the service before regression sets);
-//! - `continual`: the default service, whose gate also guards every earlier job's held-out images.
+//! - `continual`: the default service, whose gate also guards every earlier job's held-out images
+//!   and keeps a job that wins its own domain but would regress an earlier one as an expert.
 //!
 //! Per step the report keeps what a user sees (the job's state and reason) and, when the gate
 //! refused the job, what the refused candidate would have scored on the step's domain
@@ -189,9 +190,13 @@ fn run_row(
                 .map(|g| g.iter().filter(|c| c["name"].as_str().is_some_and(|n| n.contains('/'))).collect())
                 .unwrap_or_default();
             entry["guarded_criteria"] = json!(guarded);
-            // What the job alone would have given on its domain: the candidate itself.
+            entry["message"] = job["last_event"]["message"].clone();
+            // What the job alone would have given on its domain: the candidate itself (not
+            // the composite where it was kept as an expert).
             let candidate = job["version"].as_str().unwrap_or("");
-            entry["alone_acc"] = if state == "ACTIVATED" {
+            let active = server.get_json("/v1/models/car")?["version"].as_str().unwrap_or("").to_owned();
+            entry["active_version"] = json!(active);
+            entry["alone_acc"] = if state == "ACTIVATED" && active == candidate {
                 json!(acc[domain])
             } else if !candidate.is_empty() {
                 json!(candidate_accuracy(&server, candidate, &tests[domain])?)
@@ -330,8 +335,11 @@ fn markdown(report: &Value, args: &ContinualArgs) -> String {
         }
         md += "\n";
         for s in report["rows"][row].as_array().into_iter().flatten() {
+            let step = format!("- step {} ({})", s["step"], s["domain"].as_str().unwrap_or(""));
             if let Some(reason) = s["reason"].as_str().filter(|r| !r.is_empty() && s["gate"] != "ACTIVATED") {
-                md += &format!("- step {} ({}): {reason}\n", s["step"], s["domain"].as_str().unwrap_or(""));
+                md += &format!("{step}: {reason}\n");
+            } else if let Some(m) = s["message"].as_str().filter(|m| m.contains("answering the images like its own")) {
+                md += &format!("{step}: kept as an expert: {m}\n");
             }
         }
         md += "\n";

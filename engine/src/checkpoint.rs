@@ -17,6 +17,7 @@ use tch::{Device, Kind, Tensor, nn};
 use crate::backbone::{Arch, Backbone};
 use crate::error::{CheckpointError, EngineError, Result};
 use crate::mesh::{Cuboid, Mesh, TARGET_VERTICES};
+use crate::signature::Domain;
 
 pub const FORMAT_VERSION: u32 = 1;
 pub const MANIFEST: &str = "manifest.json";
@@ -53,6 +54,18 @@ pub struct Manifest {
     /// sha256 of every other file in the directory.
     #[serde(default)]
     pub files: BTreeMap<String, String>,
+    /// Versions of the category that answer the images of their own domain; this version's
+    /// tensors answer every other image (a *composite* version, ARCHITECTURE.md "Validation
+    /// gate"). Empty for a plain model.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub experts: Vec<Expert>,
+}
+
+/// A version that answers the images its domain takes ([`Domain::accepts`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Expert {
+    pub version: String,
+    pub domain: Domain,
 }
 
 /// The per-category neural mesh (METHOD.md §3): geometry plus features, all `f32`.
@@ -105,7 +118,7 @@ impl Manifest {
         let name_ok = |s: &str| {
             !s.is_empty() && s.len() <= 64 && s.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
         };
-        if !name_ok(&self.category) || !name_ok(&self.version) {
+        if !name_ok(&self.category) || !name_ok(&self.version) || !self.experts.iter().all(|e| name_ok(&e.version)) {
             return Err(invalid(dir, format!("bad category {:?} or version {:?}", self.category, self.version)));
         }
         if self.crop.iter().any(|&c| c == 0 || c % 8 != 0) {

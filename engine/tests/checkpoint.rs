@@ -29,6 +29,7 @@ fn manifest(dtype: &str) -> Manifest {
         training: serde_json::json!({"command": "test"}),
         metrics: serde_json::Value::Null,
         files: Default::default(),
+        experts: Vec::new(),
     }
 }
 

@@ -267,6 +267,7 @@ fn manifest(
         }),
         metrics: serde_json::Value::Null,
         files: Default::default(),
+        experts: Vec::new(),
     }
 }
 

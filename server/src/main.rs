@@ -22,7 +22,7 @@ use udapose_service::{
     auth::Tokens,
     buffer::Buffer,
     decode::DecodeLimits,
-    jobs::{Jobs, JobsConfig},
+    jobs::{ExpertConfig, Jobs, JobsConfig},
     metrics::Metrics,
     registry::Registry,
     regression::RegressionConfig,
@@ -78,6 +78,11 @@ struct Args {
     /// `udapose-bench continual`'s "independent" row).
     #[arg(long)]
     no_regression_sets: bool,
+    /// Per-domain experts a category's version may hold: a job that wins its own images but
+    /// would regress an earlier domain is kept as an expert for images like its own (each one
+    /// more model in every worker's memory; 0: rejected instead).
+    #[arg(long, default_value_t = ExpertConfig::default().max)]
+    max_experts: usize,
     /// The target check: the share of visible vertices that must fire to the active model on a
     /// job's images at its first round, else the job is REJECTED as "not this category" before
     /// any training (0 turns it off). Lower it for a domain far from the source (measured
@@ -302,6 +307,7 @@ fn jobs_config(
         adapt: AdaptConfig::default(),
         gate: GateConfig { min_target_fired: args.min_target_fired, ..Default::default() },
         regression: RegressionConfig { enabled: !args.no_regression_sets, ..Default::default() },
+        experts: ExpertConfig { max: args.max_experts, ..Default::default() },
         device: runtime.device(),
         decode: limits.decode,
         runs_jobs: args.role != Role::Serve,

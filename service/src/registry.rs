@@ -20,7 +20,10 @@ use std::{
 use anyhow::{Context, Result};
 use arc_swap::ArcSwapOption;
 use crossbeam_channel::{Sender, TrySendError};
-use udapose_engine::checkpoint::{MANIFEST, Manifest};
+use udapose_engine::{
+    checkpoint::{MANIFEST, Manifest},
+    signature::Domain,
+};
 
 use crate::{
     error::ApiError,
@@ -36,6 +39,16 @@ pub struct ActiveVersion {
     pub generation: u64,
     pub dir: PathBuf,
     pub manifest: Manifest,
+    /// The manifest's experts with a local directory each (empty for a plain version).
+    pub experts: Vec<ExpertVersion>,
+}
+
+/// An expert of the active version, ready to load.
+#[derive(Debug, Clone)]
+pub struct ExpertVersion {
+    pub version: String,
+    pub domain: Domain,
+    pub dir: PathBuf,
 }
 
 /// One category: its active version, its queue and its workers' state.
@@ -129,7 +142,15 @@ fn active_version(
 ) -> Result<ActiveVersion, StoreError> {
     let manifest = store.manifest(category, &head.version)?;
     let dir = store.version_dir(category, &head.version)?;
-    Ok(ActiveVersion { version: head.version, generation, dir, manifest })
+    let experts = manifest
+        .experts
+        .iter()
+        .map(|e| {
+            let dir = store.version_dir(category, &e.version)?;
+            Ok(ExpertVersion { version: e.version.clone(), domain: e.domain.clone(), dir })
+        })
+        .collect::<Result<_, StoreError>>()?;
+    Ok(ActiveVersion { version: head.version, generation, dir, manifest, experts })
 }
 
 /// Whether every configured model is loaded, and why not.

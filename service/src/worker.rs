@@ -18,6 +18,7 @@ use udapose_engine::{
     checkpoint,
     estimator::{Estimator, PoseEstimate},
     input::{self, Crop, CropBox, Rgb8Image},
+    signature::{Domain, image_stats, pick},
     solver::SolverConfig,
 };
 
@@ -87,17 +88,46 @@ pub struct WorkerAnswer {
     pub batch_size: usize,
 }
 
-/// A model as one worker holds it.
+/// A model as one worker holds it: the active version's own, and one per expert.
 struct Loaded {
     active: Arc<ActiveVersion>,
     estimator: Estimator,
+    experts: Vec<(Domain, Estimator)>,
 }
 
 impl Loaded {
     fn load(active: Arc<ActiveVersion>, device: Device) -> Result<Self> {
-        let model =
-            checkpoint::load(&active.dir, device).with_context(|| format!("loading {}", active.dir.display()))?;
-        Ok(Loaded { active, estimator: Estimator::new(model, SolverConfig::default())? })
+        let estimator = |dir: &std::path::Path| -> Result<Estimator> {
+            let model = checkpoint::load(dir, device).with_context(|| format!("loading {}", dir.display()))?;
+            Ok(Estimator::new(model, SolverConfig::default())?)
+        };
+        let experts =
+            active.experts.iter().map(|e| Ok((e.domain.clone(), estimator(&e.dir)?))).collect::<Result<_>>()?;
+        Ok(Loaded { estimator: estimator(&active.dir)?, experts, active })
+    }
+
+    fn resident_bytes(&self) -> usize {
+        self.estimator.resident_bytes() + self.experts.iter().map(|(_, e)| e.resident_bytes()).sum::<usize>()
+    }
+
+    /// Which estimator answers each crop: 0 the version's own, `i + 1` its expert `i`
+    /// (the one whose domain takes the crop with the highest likelihood).
+    fn route(&self, crops: &[&Crop]) -> Vec<usize> {
+        if self.experts.is_empty() {
+            return vec![0; crops.len()];
+        }
+        let domains: Vec<&Domain> = self.experts.iter().map(|(d, _)| d).collect();
+        crops
+            .iter()
+            .map(|c| match image_stats(&c.pixels, c.size) {
+                Ok(stats) => pick(&domains, &stats).map_or(0, |i| i + 1),
+                Err(_) => 0,
+            })
+            .collect()
+    }
+
+    fn member(&self, index: usize) -> &Estimator {
+        if index == 0 { &self.estimator } else { &self.experts[index - 1].1 }
     }
 }
 
@@ -132,7 +162,7 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
     category.worker_loaded();
     // This worker's share of the category's memory: its own copy of the model.
     let memory = metrics.model_bytes.with_label_values(&[category.name.as_str()]);
-    memory.add(loaded.estimator.resident_bytes() as i64);
+    memory.add(loaded.resident_bytes() as i64);
     let depth = metrics.queue_depth.with_label_values(&[category.name.as_str()]);
     let batch_sizes = metrics.batch_size.with_label_values(&[category.name.as_str()]);
     // A generation that failed to load is not retried until another one is activated.
@@ -142,7 +172,7 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
             Ok(request) => Some(request),
             Err(RecvTimeoutError::Timeout) => None,
             Err(RecvTimeoutError::Disconnected) => {
-                memory.sub(loaded.estimator.resident_bytes() as i64);
+                memory.sub(loaded.resident_bytes() as i64);
                 return;
             }
         };
@@ -154,7 +184,7 @@ fn run(category: &Category, rx: &Receiver<Request>, config: &WorkerConfig, metri
         {
             match load_active(category, config.device, Some(&loaded)) {
                 Some(next) => {
-                    memory.add(next.estimator.resident_bytes() as i64 - loaded.estimator.resident_bytes() as i64);
+                    memory.add(next.resident_bytes() as i64 - loaded.resident_bytes() as i64);
                     loaded = next;
                 }
                 None => failed = Some(active.generation),
@@ -177,7 +207,7 @@ fn load_active(category: &Category, device: Device, current: Option<&Loaded>) ->
     match Loaded::load(active.clone(), device) {
         Ok(loaded) => {
             tracing::info!(category = %category.name, version = %active.version, generation = active.generation,
-                ms = started.elapsed().as_millis() as u64, "model loaded");
+                experts = active.experts.len(), ms = started.elapsed().as_millis() as u64, "model loaded");
             category.set_error(None);
             Some(loaded)
         }
@@ -299,20 +329,46 @@ fn cut(loaded: &Loaded, request: &Request) -> Result<Vec<Crop>, ApiError> {
 
 type CropResult = Result<(PoseAnswer, f64), ApiError>;
 
-/// The backbone over the crops on this thread, in passes of at most `max_batch`, then the crops'
-/// solves in parallel on `pool` (the global pool where `None`). Returns each crop's answer and
-/// solver time, and the backbone's time.
+/// Each crop on the estimator it is routed to ([`Loaded::route`]); answers in the crops' order,
+/// and the backbone's time over all members.
 fn infer(
     loaded: &Loaded,
     crops: &[&Crop],
     config: &WorkerConfig,
     pool: Option<&rayon::ThreadPool>,
 ) -> Result<(Vec<CropResult>, f64), ApiError> {
+    let routes = loaded.route(crops);
+    let mut results: Vec<Option<CropResult>> = crops.iter().map(|_| None).collect();
+    let mut backbone_ms = 0.0;
+    for member in 0..=loaded.experts.len() {
+        let picked: Vec<usize> = (0..crops.len()).filter(|&i| routes[i] == member).collect();
+        if picked.is_empty() {
+            continue;
+        }
+        let group: Vec<&Crop> = picked.iter().map(|&i| crops[i]).collect();
+        let (answers, ms) = infer_on(loaded, loaded.member(member), &group, config, pool)?;
+        backbone_ms += ms;
+        for (i, a) in picked.into_iter().zip(answers) {
+            results[i] = Some(a);
+        }
+    }
+    Ok((results.into_iter().map(|r| r.expect("every crop is routed once")).collect(), backbone_ms))
+}
+
+/// The backbone over the crops on this thread, in passes of at most `max_batch`, then the crops'
+/// solves in parallel on `pool` (the global pool where `None`). Returns each crop's answer and
+/// solver time, and the backbone's time.
+fn infer_on(
+    loaded: &Loaded,
+    estimator: &Estimator,
+    crops: &[&Crop],
+    config: &WorkerConfig,
+    pool: Option<&rayon::ThreadPool>,
+) -> Result<(Vec<CropResult>, f64), ApiError> {
     let started = Instant::now();
-    let features = loaded.estimator.features(crops, config.max_batch)?;
+    let features = estimator.features(crops, config.max_batch)?;
     let backbone_ms = ms(started.elapsed());
-    let results = loaded
-        .estimator
+    let results = estimator
         .estimate_all_in(pool, crops, &features)
         .into_iter()
         .map(|r| Ok(r.map(|(estimate, ms)| (answer(loaded, estimate), ms))?))

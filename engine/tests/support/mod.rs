@@ -29,6 +29,7 @@ pub fn random_model(seed: i64, crop: [usize; 2], version: &str) -> Model {
         training: serde_json::json!({"command": "test"}),
         metrics: serde_json::Value::Null,
         files: Default::default(),
+        experts: Vec::new(),
     };
     let vs = nn::VarStore::new(Device::Cpu);
     let backbone = Backbone::new(vs.root(), manifest.backbone, 128);

@@ -25,6 +25,7 @@
 //! persisted image lists (a version already saved complete is reused), and a validating job
 //! first looks for itself in the activation log.
 
+mod experts;
 mod log;
 mod model;
 pub mod priority;
@@ -43,6 +44,7 @@ use std::{
 
 use anyhow::{Context, Result};
 
+pub use experts::ExpertConfig;
 use log::{job_key, read_events};
 pub use model::{JobEvent, JobSpec, JobState, JobView, JobsConfig, Overrides, Rejection, TargetAck};
 use model::{first_event, held_out};

@@ -11,6 +11,7 @@ use udapose_engine::{
     gate::{self, GateConfig},
 };
 
+use super::ExpertConfig;
 use crate::{buffer::AckStatus, decode::DecodeLimits, regression::RegressionConfig};
 
 /// Settings a job may override; unset: the server's defaults.
@@ -82,6 +83,8 @@ pub struct JobsConfig {
     pub gate: GateConfig,
     /// The bounds of the regression sets the gate guards.
     pub regression: RegressionConfig,
+    /// The bounds of per-domain experts.
+    pub experts: ExpertConfig,
     pub device: Device,
     pub decode: DecodeLimits,
     /// Whether this process runs jobs (`--role all|adapt`) or only records and watches them.

@@ -17,7 +17,10 @@ use udapose_engine::{
     input::{self, Rgb8Image},
 };
 
-use super::{JobSpec, JobState, Jobs};
+use super::{
+    JobSpec, JobState, Jobs,
+    experts::{self, Compared},
+};
 use crate::{
     decode,
     store::{StoreError, failpoint},
@@ -148,10 +151,12 @@ impl Jobs {
         }
     }
 
-    /// The gate on the held-out images, candidate against source; then the create-only
-    /// activation of the generation the job started from + 1.
+    /// The gate on the held-out images and the regression sets, candidate against source; then
+    /// the create-only activation of the generation the job started from + 1: of the candidate,
+    /// or, where it would regress an earlier domain, of the source with the candidate as an
+    /// expert (`experts.rs`).
     fn validate_and_activate(&self, spec: &JobSpec, source: &Model, cancel: &AtomicBool) -> Result<()> {
-        let (id, crop) = (spec.job_id.as_str(), source.manifest.crop);
+        let id = spec.job_id.as_str();
         self.append(id, JobState::Validating, |e| {
             e.message = format!("saved {}; validating on {} held-out images", spec.version, spec.held_out.len());
             e.version = spec.version.clone();
@@ -160,31 +165,35 @@ impl Jobs {
         let candidate_dir = self.store.version_dir(&spec.category, &spec.version)?;
         let candidate = checkpoint::load(&candidate_dir, self.config.device)
             .with_context(|| format!("loading {}", candidate_dir.display()))?;
-        let held_out = self.images(&spec.category, &spec.held_out, crop)?;
         let mut check = |_: usize, _: usize| {
             if cancel.load(Ordering::Acquire) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         };
-        let before = gate::measure(source, &held_out, &self.config.gate, &mut check)?;
-        let after = gate::measure(&candidate, &held_out, &self.config.gate, &mut check)?;
-        drop(held_out);
-        let mut decision = gate::decide(&before, &after, &self.config.gate)?;
+        let held_out = self.images(&spec.category, &spec.held_out, source.manifest.crop)?;
+        let Some(held) = self.compare(held_out, source, &candidate, &mut check)? else {
+            self.append(id, JobState::Rejected, |e| {
+                e.message = format!(
+                    "the gate kept {} inactive: fewer than {} of its held-out images are answered by {}'s own \
+                     model; its experts answer the rest (adapting an expert is not built)",
+                    spec.version, self.config.gate.min_images, spec.source_version
+                );
+            })?;
+            return Ok(());
+        };
+        let mut decision = gate::decide(&held.before, &held.after, &self.config.gate)?;
         let mut criteria: Vec<_> = decision.criteria.iter().map(criterion).collect();
         // Every set is measured even when the new domain already failed, so the events always
         // show what the candidate would do to the domains seen before (bounded: see
         // RegressionConfig).
-        let guarded = self.guard(spec, source, &candidate, &mut check)?;
-        for (set_id, d) in &guarded {
-            criteria.extend(
-                d.criteria
-                    .iter()
-                    .map(|c| udapose_api::GateCriterion { name: format!("{set_id}/{}", c.name), ..criterion(c) }),
-            );
-        }
-        let regressed: Vec<String> = guarded
+        let sets = self.guard(spec, source, &candidate, &mut check)?;
+        let guarded: Vec<(&str, gate::Decision)> = sets
             .iter()
-            .filter(|(_, d)| !d.passed)
-            .map(|(set_id, d)| format!("it would regress on regression set {set_id}: {}", d.reason()))
-            .collect();
+            .map(|(set_id, c)| Ok((set_id.as_str(), gate::guard(&c.before, &c.after, &self.config.gate)?)))
+            .collect::<Result<_>>()?;
+        for (set_id, d) in &guarded {
+            tracing::info!(job = %id, "regression set {set_id}: {}", d.reason());
+            criteria.extend(set_criteria(set_id, d));
+        }
+        let regressed = regressions(&guarded);
         let passed_alone = decision.passed;
         decision.passed &= regressed.is_empty();
         let why = || {
@@ -192,28 +201,49 @@ impl Jobs {
             own.into_iter().chain(regressed.iter().cloned()).collect::<Vec<_>>().join("; ")
         };
         if !decision.passed && self.config.enforce_gate {
-            self.append(id, JobState::Rejected, |e| {
-                e.message = format!("the gate kept {} inactive: {}", spec.version, why());
-                e.gate = criteria.clone();
-            })?;
-            return Ok(());
+            let as_expert = if passed_alone { self.expert(spec, source, &held, &sets)? } else { Err(String::new()) };
+            return match as_expert {
+                Ok((expert, summary)) => self.activate_expert(spec, source, expert, &summary, criteria),
+                Err(no) => {
+                    let no = if no.is_empty() { no } else { format!("; not kept as an expert: {no}") };
+                    self.append(id, JobState::Rejected, |e| {
+                        e.message = format!("the gate kept {} inactive: {}{no}", spec.version, why());
+                        e.gate = criteria.clone();
+                    })?;
+                    Ok(())
+                }
+            };
         }
-        // Whatever is activated, its domain is now one the service has seen.
-        self.record_set(spec)?;
         let reason = if decision.passed {
             format!("job {id}: passed the validation gate")
         } else {
             format!("job {id}: activated by --gate advisory although the gate failed: {}", why())
         };
+        self.activate(spec, &spec.version, &reason, criteria, String::new())
+    }
+
+    /// Records the job's regression set, then activates `version` as the generation the job
+    /// started from + 1 (SUPERSEDED where another was activated since).
+    pub(super) fn activate(
+        &self,
+        spec: &JobSpec,
+        version: &str,
+        reason: &str,
+        criteria: Vec<udapose_api::GateCriterion>,
+        detail: String,
+    ) -> Result<()> {
+        let id = spec.job_id.as_str();
+        // Whatever is activated, its domain is now one the service has seen.
+        self.record_set(spec)?;
         let actor = format!("job:{id}");
         failpoint("before-activate");
         let activated =
-            self.store.activate(&spec.category, &spec.version, &actor, &reason, Some(spec.source_generation), Some(id));
+            self.store.activate(&spec.category, version, &actor, reason, Some(spec.source_generation), Some(id));
         match activated {
             Ok(generation) => {
                 self.registry.refresh();
                 self.append(id, JobState::Activated, |e| {
-                    e.message = format!("activated {} as generation {generation}", spec.version);
+                    e.message = format!("activated {version} as generation {generation}{detail}");
                     e.gate = criteria.clone();
                 })?;
             }
@@ -232,16 +262,36 @@ impl Jobs {
         Ok(())
     }
 
-    /// The regression rule on each of the category's regression sets (ARCHITECTURE.md
-    /// "Validation gate"), candidate against the version the job started from; per set, its id
-    /// and verdict. A set too small to decide on is skipped (logged).
+    /// The images of `images` the source's own tensors answer, as both models see them; `None`
+    /// when fewer than the gate's minimum are left.
+    fn compare(
+        &self,
+        images: Tensor,
+        source: &Model,
+        candidate: &Model,
+        check: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
+    ) -> Result<Option<Compared>> {
+        let all = experts::stats(&images)?;
+        let rows = experts::own_rows(&all, &source.manifest.experts);
+        if rows.len() < self.config.gate.min_images {
+            return Ok(None);
+        }
+        let images = if rows.len() == all.len() { images } else { experts::select(&images, &rows) };
+        let before = gate::measure(source, &images, &self.config.gate, check)?;
+        let after = gate::measure(candidate, &images, &self.config.gate, check)?;
+        Ok(Some(Compared { before, after, stats: rows.iter().map(|&r| all[r]).collect() }))
+    }
+
+    /// Each of the category's regression sets compared (ARCHITECTURE.md "Validation gate"),
+    /// candidate against the version the job started from, by id. A set too small to decide on,
+    /// or answered by the experts, is skipped (logged).
     fn guard(
         &self,
         spec: &JobSpec,
         source: &Model,
         candidate: &Model,
         check: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
-    ) -> Result<Vec<(String, gate::Decision)>> {
+    ) -> Result<Vec<(String, Compared)>> {
         if !self.regression.config.enabled {
             return Ok(Vec::new());
         }
@@ -249,17 +299,13 @@ impl Jobs {
         let mut out = Vec::with_capacity(sets.len());
         for s in sets {
             let id = &s.set.set_id;
-            if s.shas.len() < self.config.gate.min_images {
-                tracing::warn!(job = %spec.job_id, "regression set {id} has {} images, too few to guard", s.shas.len());
-                continue;
-            }
             let bytes = s.shas.iter().map(|sha| self.regression.read(&spec.category, id, sha).map_err(Into::into));
             let images = crops(bytes, &s.shas, source.manifest.crop, self.config.decode)?;
-            let before = gate::measure(source, &images, &self.config.gate, check)?;
-            let after = gate::measure(candidate, &images, &self.config.gate, check)?;
-            let decision = gate::guard(&before, &after, &self.config.gate)?;
-            tracing::info!(job = %spec.job_id, "regression set {id} ({} images): {}", s.shas.len(), decision.reason());
-            out.push((id.clone(), decision));
+            match self.compare(images, source, candidate, check)? {
+                Some(compared) => out.push((id.clone(), compared)),
+                None => tracing::warn!(job = %spec.job_id,
+                    "regression set {id}: {} images, too few answered by {}'s own model to guard", s.shas.len(), spec.source_version),
+            }
         }
         Ok(out)
     }
@@ -307,8 +353,25 @@ pub(super) fn is_cancelled(e: &anyhow::Error) -> bool {
     matches!(e.downcast_ref::<EngineError>(), Some(EngineError::Cancelled))
 }
 
+/// A regression set's criteria as the job's events show them, named `<set>/<criterion>`.
+pub(super) fn set_criteria<'a>(
+    set_id: &'a str,
+    d: &'a gate::Decision,
+) -> impl Iterator<Item = udapose_api::GateCriterion> + 'a {
+    d.criteria.iter().map(move |c| udapose_api::GateCriterion { name: format!("{set_id}/{}", c.name), ..criterion(c) })
+}
+
+/// Why each failing set failed.
+pub(super) fn regressions(guarded: &[(&str, gate::Decision)]) -> Vec<String> {
+    guarded
+        .iter()
+        .filter(|(_, d)| !d.passed)
+        .map(|(set_id, d)| format!("it would regress on regression set {set_id}: {}", d.reason()))
+        .collect()
+}
+
 /// A gate criterion as the job's events show it.
-fn criterion(c: &gate::Criterion) -> udapose_api::GateCriterion {
+pub(super) fn criterion(c: &gate::Criterion) -> udapose_api::GateCriterion {
     let gate::Criterion { name, active, candidate, threshold, passed, detail } = c.clone();
     udapose_api::GateCriterion { name, active, candidate, threshold, passed, detail }
 }

@@ -32,6 +32,7 @@ fn recorder(store: &Store, registry: &Arc<Registry>) -> Arc<Jobs> {
         adapt: AdaptConfig::default(),
         gate: GateConfig::default(),
         regression: Default::default(),
+        experts: Default::default(),
         device: Device::Cpu,
         decode: DecodeLimits::default(),
         runs_jobs: false,

@@ -202,3 +202,23 @@ pub fn not_cars(dir: &Path, n: usize) {
         img.save(dir.join(format!("{i:03}.png"))).unwrap();
     }
 }
+
+/// Activates `version` and waits until it answers.
+pub fn serve_version(server: &Server, version: &str, probe: &QuickImage) {
+    let body = format!(r#"{{"version":"{version}","reason":"test"}}"#);
+    let r = server.request("POST", "/v1/models/car/activate", &[], body.as_bytes());
+    assert_eq!(r.status, 200, "{}", r.body);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while estimate(server, probe)["model_version"] != version {
+        assert!(Instant::now() < deadline, "{version} never served\n{}", server.log());
+        thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Uploads one domain's adapt images, runs a job on them to its end; the job.
+pub fn job_on(server: &Server, domain: &str) -> Value {
+    let acks = upload(server, &adapt_images(domain));
+    assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"), "{acks:?}");
+    let id = start_job(server);
+    wait_job(server, &id, "finished", terminal)
+}

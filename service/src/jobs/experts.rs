@@ -1,0 +1,197 @@
+//! Per-domain experts (ARCHITECTURE.md "Validation gate"): one shared model cannot hold two
+//! domains whose BatchNorm statistics differ (`reports/continual-variants.md`), so a candidate
+//! that wins its own domain but would give back an earlier one may instead join the version it
+//! started from as an *expert*: a new composite version whose own tensors are the old ones and
+//! whose manifest sends the images the candidate's domain takes ([`Domain`]) to the candidate.
+//!
+//! An expert's domain is fitted on the job's training images, with the regression sets' images
+//! as its rival ([`Domain::rival`]): it takes an image that looks like its own images, and more
+//! like them than like the images of the domains seen before.
+//!
+//! The gate compares what answers each image. Images an existing expert takes are answered by
+//! that expert before and after a job, so they are left out of the comparison (a set they make
+//! up entirely is not guarded: nothing the job changes answers it). The composite's verdict
+//! needs no new estimate: on each image it is the candidate's check where the new domain takes
+//! the image and the active version's elsewhere.
+
+use anyhow::{Result, anyhow};
+use serde_json::json;
+use tch::{Kind, Tensor};
+use udapose_engine::{
+    checkpoint::{self, Expert, Manifest, Model},
+    gate::{self, GateStats},
+    signature::{Domain, STATS, Signature, image_stats, pick},
+};
+
+use super::{JobSpec, Jobs};
+use crate::store::StoreError;
+
+/// Bounds of the experts of one category.
+#[derive(Clone, Debug)]
+pub struct ExpertConfig {
+    /// Experts a version may hold (each is one more model in every worker's memory; 0: none,
+    /// a candidate that would regress an earlier domain is rejected).
+    pub max: usize,
+    /// Share of unseen images of its domain an expert's bound takes ([`Domain::fit`]).
+    pub coverage: f64,
+}
+
+impl Default for ExpertConfig {
+    fn default() -> Self {
+        ExpertConfig { max: 3, coverage: 0.95 }
+    }
+}
+
+/// Each crop's statistics (rows of N×3×H×W in [0, 1]).
+pub(super) fn stats(images: &Tensor) -> Result<Vec<[f64; STATS]>> {
+    let size = images.size();
+    let [n, _, h, w] = size[..] else { return Err(anyhow!("crops of shape {size:?}")) };
+    (0..n)
+        .map(|i| {
+            let pixels = Vec::<f32>::try_from(images.get(i).to_kind(Kind::Float).flatten(0, -1))?;
+            Ok(image_stats(&pixels, [h as usize, w as usize])?)
+        })
+        .collect()
+}
+
+/// The rows no expert takes: what the version's own tensors answer.
+pub(super) fn own_rows(stats: &[[f64; STATS]], experts: &[Expert]) -> Vec<usize> {
+    let domains: Vec<&Domain> = experts.iter().map(|e| &e.domain).collect();
+    (0..stats.len()).filter(|&i| pick(&domains, &stats[i]).is_none()).collect()
+}
+
+/// `rows` of `images`.
+pub(super) fn select(images: &Tensor, rows: &[usize]) -> Tensor {
+    let index: Vec<i64> = rows.iter().map(|&r| r as i64).collect();
+    images.index_select(0, &Tensor::from_slice(&index))
+}
+
+/// One set of images as the gate compares them: the active version's and the candidate's checks
+/// of the images the version's own tensors answer, with those images' statistics.
+pub(super) struct Compared {
+    pub before: GateStats,
+    pub after: GateStats,
+    pub stats: Vec<[f64; STATS]>,
+}
+
+impl Compared {
+    /// The composite's checks with `domain` as a new expert, and how many images it takes.
+    pub fn with_expert(&self, domain: &Domain) -> (GateStats, usize) {
+        let mut taken = 0;
+        let images = (self.before.images.iter().zip(&self.after.images).zip(&self.stats))
+            .map(|((before, after), stats)| match domain.accepts(stats) {
+                Some(_) => {
+                    taken += 1;
+                    after.clone()
+                }
+                None => before.clone(),
+            })
+            .collect();
+        (GateStats { images }, taken)
+    }
+}
+
+impl Jobs {
+    /// Whether the candidate may join the source as an expert: its domain fitted on the job's
+    /// training images, the composite's verdicts on the held-out images ([`gate::decide`]) and
+    /// on every regression set ([`gate::guard`]). The expert and what it takes, or why not.
+    pub(super) fn expert(
+        &self,
+        spec: &JobSpec,
+        source: &Model,
+        held: &Compared,
+        sets: &[(String, Compared)],
+    ) -> Result<std::result::Result<(Expert, String), String>> {
+        let bounds = &self.config.experts;
+        let held_by = source.manifest.experts.len();
+        if held_by >= bounds.max {
+            return Ok(Err(format!(
+                "{} holds {held_by} experts, the most allowed (--max-experts {})",
+                spec.source_version, bounds.max
+            )));
+        }
+        let train = stats(&self.images(&spec.category, &spec.train, source.manifest.crop)?)?;
+        let own: Vec<[f64; STATS]> = own_rows(&train, &source.manifest.experts).into_iter().map(|r| train[r]).collect();
+        let mut domain = match Domain::fit(&own, bounds.coverage) {
+            Ok(domain) => domain,
+            Err(e) => return Ok(Err(format!("no domain signature: {e}"))),
+        };
+        // The images of the earlier domains are what the expert must leave to the version's own
+        // tensors: their signature is its rival (too few of them for one: the bound alone).
+        let earlier: Vec<[f64; STATS]> = sets.iter().flat_map(|(_, c)| c.stats.iter().copied()).collect();
+        domain.rival = Signature::fit(&earlier).ok();
+        let (mixed, taken) = held.with_expert(&domain);
+        let decision = gate::decide(&held.before, &mixed, &self.config.gate)?;
+        if !decision.passed {
+            return Ok(Err(format!(
+                "it would take {taken} of {} held-out images, too few to pass: {}",
+                mixed.images.len(),
+                decision.reason()
+            )));
+        }
+        let mut shares = Vec::new();
+        let mut regressed = Vec::new();
+        for (set_id, c) in sets {
+            let (mixed, set_taken) = c.with_expert(&domain);
+            let d = gate::guard(&c.before, &mixed, &self.config.gate)?;
+            shares.push(format!("{set_taken}/{} of {set_id}", mixed.images.len()));
+            if !d.passed {
+                regressed.push((set_id.as_str(), d));
+            }
+        }
+        if !regressed.is_empty() {
+            return Ok(Err(format!(
+                "it takes too much of earlier domains: {}",
+                super::run::regressions(&regressed).join("; ")
+            )));
+        }
+        let summary = format!(
+            ", {} answering the images like its own: {taken} of {} held-out images; {}",
+            spec.version,
+            mixed.images.len(),
+            if shares.is_empty() { "no regression set".into() } else { shares.join(", ") }
+        );
+        Ok(Ok((Expert { version: spec.version.clone(), domain }, summary)))
+    }
+
+    /// Saves the source with `expert` added as a new composite version and activates it.
+    pub(super) fn activate_expert(
+        &self,
+        spec: &JobSpec,
+        source: &Model,
+        expert: Expert,
+        summary: &str,
+        criteria: Vec<udapose_api::GateCriterion>,
+    ) -> Result<()> {
+        let composite = format!("{}-experts", spec.version);
+        let mut experts = source.manifest.experts.clone();
+        experts.push(expert);
+        let manifest = Manifest {
+            version: composite.clone(),
+            training: json!({
+                "kind": "experts",
+                "job_id": spec.job_id,
+                "base": spec.source_version,
+                "expert": spec.version,
+                "base_training": source.manifest.training,
+            }),
+            metrics: serde_json::Value::Null,
+            files: Default::default(),
+            experts,
+            ..source.manifest.clone()
+        };
+        // Saved before a restart: validation is deterministic, so the same composite.
+        match self.store.manifest(&spec.category, &composite) {
+            Ok(_) => {}
+            Err(StoreError::UnknownVersion { .. }) => self.store.put_version(&spec.category, &composite, |dir| {
+                checkpoint::save(dir, &manifest, &source.vs, &source.neural_mesh).map_err(|e| e.to_string())
+            })?,
+            Err(e) => return Err(e.into()),
+        }
+        let reason = format!(
+            "job {}: {} wins its own images but would regress an earlier domain; kept as an expert of {}",
+            spec.job_id, spec.version, spec.source_version
+        );
+        self.activate(spec, &composite, &reason, criteria, summary.to_owned())
+    }
+}
