@@ -195,3 +195,50 @@ impl Jobs {
         self.activate(spec, &composite, &reason, criteria, summary.to_owned())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use udapose_engine::gate::ImageCheck;
+
+    use super::*;
+
+    /// Statistics around `centre` on every axis, spread by a fixed pseudo-random pattern.
+    fn cloud(centre: f64, n: usize) -> Vec<[f64; STATS]> {
+        (0..n).map(|i| std::array::from_fn(|k| centre + (((i * 7 + k * 13) % 17) as f64 - 8.0) / 20.0)).collect()
+    }
+
+    fn checks(margin: f64, n: usize) -> GateStats {
+        GateStats {
+            images: (0..n).map(|_| ImageCheck { azimuth: 0.0, score: 0.5, margin, flip_consistent: true }).collect(),
+        }
+    }
+
+    #[test]
+    fn the_composite_takes_the_candidates_checks_where_its_domain_takes_the_image() {
+        let near = cloud(0.0, 40);
+        let domain = Domain::fit(&near, 0.95).unwrap();
+        // Ten images like the domain's, ten far from it.
+        let mut stats = cloud(0.0, 10);
+        stats.extend(cloud(5.0, 10));
+        let compared = Compared { before: checks(0.1, 20), after: checks(0.3, 20), stats };
+        let (mixed, taken) = compared.with_expert(&domain);
+        assert!(taken >= 8 && taken <= 10, "{taken}");
+        assert!(mixed.images[10..].iter().all(|c| c.margin == 0.1), "far images keep the source's checks");
+        assert_eq!(mixed.images[..10].iter().filter(|c| c.margin == 0.3).count(), taken);
+        // An existing expert with that domain answers the near images: only the far ones are
+        // the version's own.
+        let expert = Expert { version: "v".into(), domain };
+        assert_eq!(own_rows(&compared.stats, std::slice::from_ref(&expert)), (10..20).collect::<Vec<_>>());
+        assert_eq!(own_rows(&compared.stats, &[]).len(), 20);
+    }
+
+    #[test]
+    fn rows_are_selected_from_the_crops() {
+        let images = Tensor::arange(4 * 3 * 8 * 8, (Kind::Float, tch::Device::Cpu)).view([4, 3, 8, 8]) / 768.0;
+        let picked = select(&images, &[1, 3]);
+        assert_eq!(picked.size(), [2, 3, 8, 8]);
+        assert!(picked.get(1).equal(&images.get(3)));
+        assert_eq!(stats(&images).unwrap().len(), 4);
+        assert!(stats(&images.view([4, 192])).is_err(), "not N×3×H×W");
+    }
+}
