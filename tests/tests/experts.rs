@@ -65,6 +65,7 @@ fn a_job_that_would_regress_an_earlier_domain_is_kept_as_an_expert() {
     serve_version(&server, candidate, &fog[0]);
     let (candidate_clear_right, candidate_fog) = (right(&server, &clear), angles(&server, &fog));
     let candidate_same = fog_model_fog.iter().zip(&candidate_fog).filter(|(a, b)| a == b).count();
+    serve_version(&server, &composite, &fog[0]);
     eprintln!(
         "fog test: composite answers {same}/60 as step 1's model, the candidate alone {candidate_same}/60; \
          clear test Acc@π/6: step 1's model {fog_model_clear_right}/60, candidate {candidate_clear_right}/60, \
@@ -75,5 +76,25 @@ fn a_job_that_would_regress_an_earlier_domain_is_kept_as_an_expert() {
         composite_clear_right + 3 >= candidate_clear_right,
         "clear: {composite_clear_right} vs {candidate_clear_right}"
     );
+
+    // Step 3: clear images again. Most go to the clear expert, so the job adapts the expert,
+    // and the gate compares it with the expert on the images the expert answers: step 2's set,
+    // not the fog set or the fog anchors, which the version's own tensors answer.
+    let again = job_on(&server, "source");
+    eprintln!("{}: {}", again["state"], again["reason"]);
+    let names: Vec<&str> =
+        again["last_event"]["gate"].as_array().unwrap().iter().filter_map(|c| c["name"].as_str()).collect();
+    let clear_set = format!("{}/score_margin", job["job_id"].as_str().unwrap());
+    assert!(names.contains(&clear_set.as_str()), "{names:?}");
+    assert!(!names.iter().any(|n| n.starts_with("anchor/") || n.starts_with(fog_job["job_id"].as_str().unwrap())));
+    if again["state"] == "ACTIVATED" {
+        let version = format!("{}-experts", again["version"].as_str().unwrap());
+        assert_eq!(active_version(&server), version);
+        let same = angles(&server, &fog).iter().zip(&fog_model_fog).filter(|(a, b)| a == b).count();
+        assert!(same >= 57, "{same} of 60 fog images answered as step 1's model did");
+    } else {
+        assert_eq!(again["state"], "REJECTED", "{again}");
+        assert_eq!(active_version(&server), composite);
+    }
     serve_version(&server, &fog_version, &fog[0]);
 }

@@ -54,10 +54,43 @@ pub(super) fn stats(images: &Tensor) -> Result<Vec<[f64; STATS]>> {
         .collect()
 }
 
+/// The rows `member` answers: expert `i` for `Some(i)`, the version's own tensors for `None`.
+pub(super) fn rows_of(stats: &[[f64; STATS]], experts: &[Expert], member: Option<usize>) -> Vec<usize> {
+    let domains: Vec<&Domain> = experts.iter().map(|e| &e.domain).collect();
+    (0..stats.len()).filter(|&i| pick(&domains, &stats[i]) == member).collect()
+}
+
 /// The rows no expert takes: what the version's own tensors answer.
 pub(super) fn own_rows(stats: &[[f64; STATS]], experts: &[Expert]) -> Vec<usize> {
-    let domains: Vec<&Domain> = experts.iter().map(|e| &e.domain).collect();
-    (0..stats.len()).filter(|&i| pick(&domains, &stats[i]).is_none()).collect()
+    rows_of(stats, experts, None)
+}
+
+/// What a job adapts and the gate compares the candidate with: the source version's own
+/// tensors, or, where most of the job's training images go to one of its experts, that expert
+/// (the candidate then replaces it in a new composite).
+pub(super) struct Start {
+    /// The source version (its own tensors; its manifest lists its experts).
+    pub source: Model,
+    /// The expert adapted, by index among the source's experts, and its model.
+    pub expert: Option<(usize, Model)>,
+}
+
+impl Start {
+    pub fn model(&self) -> &Model {
+        self.expert.as_ref().map_or(&self.source, |(_, m)| m)
+    }
+
+    pub fn member(&self) -> Option<usize> {
+        self.expert.as_ref().map(|(i, _)| *i)
+    }
+
+    /// What the job adapts, in words.
+    pub fn name(&self, spec: &JobSpec) -> String {
+        match &self.expert {
+            None => format!("{}'s own model", spec.source_version),
+            Some((i, _)) => format!("{}'s expert {}", spec.source_version, self.source.manifest.experts[*i].version),
+        }
+    }
 }
 
 /// `rows` of `images`.
@@ -92,6 +125,25 @@ impl Compared {
 }
 
 impl Jobs {
+    /// Where the job starts: the expert that more than half of its training images go to, if
+    /// any, else the source's own tensors.
+    pub(super) fn starting_point(&self, spec: &JobSpec, source: Model) -> Result<Start> {
+        let experts = &source.manifest.experts;
+        if experts.is_empty() {
+            return Ok(Start { source, expert: None });
+        }
+        let train = stats(&self.images(&spec.category, &spec.train, source.manifest.crop)?)?;
+        let majority = (0..experts.len()).find(|&i| 2 * rows_of(&train, experts, Some(i)).len() > train.len());
+        let expert = match majority {
+            Some(i) => {
+                tracing::info!(job = %spec.job_id, "most of its images look like expert {}'s: adapting it", experts[i].version);
+                Some((i, self.load(spec, &experts[i].version)?))
+            }
+            None => None,
+        };
+        Ok(Start { source, expert })
+    }
+
     /// Whether the candidate may join the source as an expert: its domain fitted on the job's
     /// training images, the composite's verdicts on the held-out images ([`gate::decide`]) and
     /// on every regression set ([`gate::guard`]). The expert and what it takes, or why not.
@@ -154,25 +206,25 @@ impl Jobs {
         Ok(Ok((Expert { version: spec.version.clone(), domain }, summary)))
     }
 
-    /// Saves the source with `expert` added as a new composite version and activates it.
-    pub(super) fn activate_expert(
+    /// Saves the source's own tensors with `experts` as a new composite version (named after
+    /// the candidate) and activates it.
+    pub(super) fn activate_composite(
         &self,
         spec: &JobSpec,
         source: &Model,
-        expert: Expert,
+        experts: Vec<Expert>,
+        reason: &str,
         summary: &str,
         criteria: Vec<udapose_api::GateCriterion>,
     ) -> Result<()> {
         let composite = format!("{}-experts", spec.version);
-        let mut experts = source.manifest.experts.clone();
-        experts.push(expert);
         let manifest = Manifest {
             version: composite.clone(),
             training: json!({
                 "kind": "experts",
                 "job_id": spec.job_id,
                 "base": spec.source_version,
-                "expert": spec.version,
+                "candidate": spec.version,
                 "base_training": source.manifest.training,
             }),
             metrics: serde_json::Value::Null,
@@ -188,11 +240,7 @@ impl Jobs {
             })?,
             Err(e) => return Err(e.into()),
         }
-        let reason = format!(
-            "job {}: {} wins its own images but would regress an earlier domain; kept as an expert of {}",
-            spec.job_id, spec.version, spec.source_version
-        );
-        self.activate(spec, &composite, &reason, criteria, summary.to_owned())
+        self.activate(spec, &composite, reason, criteria, summary.to_owned())
     }
 }
 
@@ -222,7 +270,7 @@ mod tests {
         stats.extend(cloud(5.0, 10));
         let compared = Compared { before: checks(0.1, 20), after: checks(0.3, 20), stats };
         let (mixed, taken) = compared.with_expert(&domain);
-        assert!(taken >= 8 && taken <= 10, "{taken}");
+        assert!((8..=10).contains(&taken), "{taken}");
         assert!(mixed.images[10..].iter().all(|c| c.margin == 0.1), "far images keep the source's checks");
         assert_eq!(mixed.images[..10].iter().filter(|c| c.margin == 0.3).count(), taken);
         // An existing expert with that domain answers the near images: only the far ones are

@@ -19,7 +19,7 @@ use udapose_engine::{
 
 use super::{
     JobSpec, JobState, Jobs,
-    experts::{self, Compared},
+    experts::{self, Compared, Start},
 };
 use crate::{
     decode,
@@ -35,9 +35,8 @@ impl Jobs {
             e.message = format!("adapting {} on {} images", spec.source_version, spec.train.len());
             e.max_rounds = config.max_rounds as u32;
         })?;
-        let source_dir = self.store.version_dir(&spec.category, &spec.source_version)?;
-        let source = checkpoint::load(&source_dir, self.config.device)
-            .with_context(|| format!("loading {}", source_dir.display()))?;
+        let source = self.load(spec, &spec.source_version)?;
+        let start = self.starting_point(spec, source)?;
         let saved = match self.store.manifest(&spec.category, &spec.version) {
             Ok(_) => true,
             Err(StoreError::UnknownVersion { .. }) => false,
@@ -45,10 +44,16 @@ impl Jobs {
         };
         if saved {
             tracing::info!(job = %spec.job_id, "version {} was saved before a restart; validating it", spec.version);
-        } else if !self.adapt_and_save(spec, &source, &config, cancel)? {
+        } else if !self.adapt_and_save(spec, &start, &config, cancel)? {
             return Ok(());
         }
-        self.validate_and_activate(spec, &source, cancel)
+        self.validate_and_activate(spec, &start, cancel)
+    }
+
+    /// A version of the job's category, loaded.
+    pub(super) fn load(&self, spec: &JobSpec, version: &str) -> Result<Model> {
+        let dir = self.store.version_dir(&spec.category, version)?;
+        checkpoint::load(&dir, self.config.device).with_context(|| format!("loading {}", dir.display()))
     }
 
     /// The server's adaptation settings with the job's overrides.
@@ -63,14 +68,8 @@ impl Jobs {
 
     /// 3DUDA on the job's images, then the candidate saved as its version. `false` when the
     /// target check rejected the images (recorded; nothing saved).
-    fn adapt_and_save(
-        &self,
-        spec: &JobSpec,
-        source: &Model,
-        config: &AdaptConfig,
-        cancel: &AtomicBool,
-    ) -> Result<bool> {
-        let id = spec.job_id.as_str();
+    fn adapt_and_save(&self, spec: &JobSpec, start: &Start, config: &AdaptConfig, cancel: &AtomicBool) -> Result<bool> {
+        let (id, source) = (spec.job_id.as_str(), start.model());
         let train = self.images(&spec.category, &spec.train, source.manifest.crop)?;
         let started = Instant::now();
         // Set when the images do not look like the category (see GateConfig::min_target_fired).
@@ -113,6 +112,7 @@ impl Jobs {
                 "kind": "3duda-online",
                 "job_id": id,
                 "source_version": spec.source_version,
+                "expert_of_source": start.expert.as_ref().map(|(i, _)| &start.source.manifest.experts[*i].version),
                 "source_training": source.manifest.training,
                 "config": config,
                 "images": spec.train.len(),
@@ -124,6 +124,9 @@ impl Jobs {
             dtype: "f32".into(),
             metrics: serde_json::Value::Null,
             files: Default::default(),
+            // A new version's own tensors answer what the source's did; an adapted expert is
+            // a plain model, answering what the composite routes to it.
+            experts: if start.expert.is_some() { Vec::new() } else { start.source.manifest.experts.clone() },
             ..source.manifest.clone()
         };
         self.store.put_version(&spec.category, &spec.version, |dir| {
@@ -155,7 +158,7 @@ impl Jobs {
     /// the create-only activation of the generation the job started from + 1: of the candidate,
     /// or, where it would regress an earlier domain, of the source with the candidate as an
     /// expert (`experts.rs`).
-    fn validate_and_activate(&self, spec: &JobSpec, source: &Model, cancel: &AtomicBool) -> Result<()> {
+    fn validate_and_activate(&self, spec: &JobSpec, start: &Start, cancel: &AtomicBool) -> Result<()> {
         let id = spec.job_id.as_str();
         self.append(id, JobState::Validating, |e| {
             e.message = format!("saved {}; validating on {} held-out images", spec.version, spec.held_out.len());
@@ -168,13 +171,15 @@ impl Jobs {
         let mut check = |_: usize, _: usize| {
             if cancel.load(Ordering::Acquire) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         };
-        let held_out = self.images(&spec.category, &spec.held_out, source.manifest.crop)?;
-        let Some(held) = self.compare(held_out, source, &candidate, &mut check)? else {
+        let held_out = self.images(&spec.category, &spec.held_out, start.source.manifest.crop)?;
+        let Some(held) = self.compare(held_out, start, &candidate, &mut check)? else {
             self.append(id, JobState::Rejected, |e| {
                 e.message = format!(
-                    "the gate kept {} inactive: fewer than {} of its held-out images are answered by {}'s own \
-                     model; its experts answer the rest (adapting an expert is not built)",
-                    spec.version, self.config.gate.min_images, spec.source_version
+                    "the gate kept {} inactive: fewer than {} of its held-out images are answered by {}, \
+                     which it adapted; the version's other members answer the rest",
+                    spec.version,
+                    self.config.gate.min_images,
+                    start.name(spec)
                 );
             })?;
             return Ok(());
@@ -184,7 +189,7 @@ impl Jobs {
         // Every set is measured even when the new domain already failed, so the events always
         // show what the candidate would do to the domains seen before (bounded: see
         // RegressionConfig).
-        let sets = self.guard(spec, source, &candidate, &mut check)?;
+        let sets = self.guard(spec, start, &candidate, &mut check)?;
         let guarded: Vec<(&str, gate::Decision)> = sets
             .iter()
             .map(|(set_id, c)| Ok((set_id.as_str(), gate::guard(&c.before, &c.after, &self.config.gate)?)))
@@ -201,9 +206,20 @@ impl Jobs {
             own.into_iter().chain(regressed.iter().cloned()).collect::<Vec<_>>().join("; ")
         };
         if !decision.passed && self.config.enforce_gate {
-            let as_expert = if passed_alone { self.expert(spec, source, &held, &sets)? } else { Err(String::new()) };
+            let as_expert = match start.expert {
+                None if passed_alone => self.expert(spec, &start.source, &held, &sets)?,
+                _ => Err(String::new()),
+            };
             return match as_expert {
-                Ok((expert, summary)) => self.activate_expert(spec, source, expert, &summary, criteria),
+                Ok((expert, summary)) => {
+                    let mut experts = start.source.manifest.experts.clone();
+                    experts.push(expert);
+                    let reason = format!(
+                        "job {id}: {} wins its own images but would regress an earlier domain; kept as an expert of {}",
+                        spec.version, spec.source_version
+                    );
+                    self.activate_composite(spec, &start.source, experts, &reason, &summary, criteria)
+                }
                 Err(no) => {
                     let no = if no.is_empty() { no } else { format!("; not kept as an expert: {no}") };
                     self.append(id, JobState::Rejected, |e| {
@@ -219,7 +235,15 @@ impl Jobs {
         } else {
             format!("job {id}: activated by --gate advisory although the gate failed: {}", why())
         };
-        self.activate(spec, &spec.version, &reason, criteria, String::new())
+        match &start.expert {
+            None => self.activate(spec, &spec.version, &reason, criteria, String::new()),
+            Some((i, _)) => {
+                let mut experts = start.source.manifest.experts.clone();
+                let replaced = std::mem::replace(&mut experts[*i].version, spec.version.clone());
+                let summary = format!(", {} replacing its expert {replaced}", spec.version);
+                self.activate_composite(spec, &start.source, experts, &reason, &summary, criteria)
+            }
+        }
     }
 
     /// Records the job's regression set, then activates `version` as the generation the job
@@ -262,17 +286,17 @@ impl Jobs {
         Ok(())
     }
 
-    /// The images of `images` the source's own tensors answer, as both models see them; `None`
-    /// when fewer than the gate's minimum are left.
+    /// The images of `images` that what the job adapted answers, as it and the candidate see
+    /// them; `None` when fewer than the gate's minimum are left.
     fn compare(
         &self,
         images: Tensor,
-        source: &Model,
+        start: &Start,
         candidate: &Model,
         check: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     ) -> Result<Option<Compared>> {
-        let all = experts::stats(&images)?;
-        let rows = experts::own_rows(&all, &source.manifest.experts);
+        let (all, source) = (experts::stats(&images)?, start.model());
+        let rows = experts::rows_of(&all, &start.source.manifest.experts, start.member());
         if rows.len() < self.config.gate.min_images {
             return Ok(None);
         }
@@ -288,7 +312,7 @@ impl Jobs {
     fn guard(
         &self,
         spec: &JobSpec,
-        source: &Model,
+        start: &Start,
         candidate: &Model,
         check: &mut dyn FnMut(usize, usize) -> ControlFlow<()>,
     ) -> Result<Vec<(String, Compared)>> {
@@ -300,11 +324,11 @@ impl Jobs {
         for s in sets {
             let id = &s.set.set_id;
             let bytes = s.shas.iter().map(|sha| self.regression.read(&spec.category, id, sha).map_err(Into::into));
-            let images = crops(bytes, &s.shas, source.manifest.crop, self.config.decode)?;
-            match self.compare(images, source, candidate, check)? {
+            let images = crops(bytes, &s.shas, start.source.manifest.crop, self.config.decode)?;
+            match self.compare(images, start, candidate, check)? {
                 Some(compared) => out.push((id.clone(), compared)),
-                None => tracing::warn!(job = %spec.job_id,
-                    "regression set {id}: {} images, too few answered by {}'s own model to guard", s.shas.len(), spec.source_version),
+                None => tracing::info!(job = %spec.job_id,
+                    "regression set {id}: {} images, too few answered by {} to guard", s.shas.len(), start.name(spec)),
             }
         }
         Ok(out)
