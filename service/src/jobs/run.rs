@@ -165,9 +165,7 @@ impl Jobs {
             e.version = spec.version.clone();
         })?;
 
-        let candidate_dir = self.store.version_dir(&spec.category, &spec.version)?;
-        let candidate = checkpoint::load(&candidate_dir, self.config.device)
-            .with_context(|| format!("loading {}", candidate_dir.display()))?;
+        let candidate = self.load(spec, &spec.version)?;
         let mut check = |_: usize, _: usize| {
             if cancel.load(Ordering::Acquire) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         };
