@@ -89,6 +89,10 @@ struct Args {
     /// shares: data/report-standard.log; see GateConfig::min_target_fired).
     #[arg(long, value_name = "SHARE", default_value_t = GateConfig::default().min_target_fired)]
     min_target_fired: f64,
+    /// How much the median score margin on a job's held-out images must rise for the gate to
+    /// pass it (negative: how much it may fall; see GateConfig::margin_gain for the default).
+    #[arg(long, default_value_t = GateConfig::default().margin_gain, allow_negative_numbers = true)]
+    margin_gain: f64,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
@@ -305,7 +309,11 @@ fn jobs_config(
     JobsConfig {
         min_images: args.adapt_min_images as usize,
         adapt: AdaptConfig::default(),
-        gate: GateConfig { min_target_fired: args.min_target_fired, ..Default::default() },
+        gate: GateConfig {
+            min_target_fired: args.min_target_fired,
+            margin_gain: args.margin_gain,
+            ..Default::default()
+        },
         regression: RegressionConfig { enabled: !args.no_regression_sets, ..Default::default() },
         experts: ExpertConfig { max: args.max_experts, ..Default::default() },
         device: runtime.device(),

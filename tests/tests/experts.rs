@@ -26,7 +26,12 @@ fn right(server: &Server, images: &[QuickImage]) -> usize {
 #[test]
 fn a_job_that_would_regress_an_earlier_domain_is_kept_as_an_expert() {
     // As in adapt.rs: to the quick model fog is far enough that the target check is off here.
-    let server = server_with("experts", &["--min-target-fired", "0"]);
+    // The quick model is retrained on every CI run, and whether the clear job's median margin
+    // rises over the fog model's on 15 held-out images varies with it (0.135 → 0.095 on one
+    // run): the margin may fall here, so the verdict on the clear images rests on flip
+    // consistency and pose diversity. This test is about what the gate does with a candidate
+    // that wins its own images and would regress an earlier set.
+    let server = server_with("experts", &["--min-target-fired", "0", "--margin-gain=-1"]);
     let (clear, fog) = (quick_images("source", 60), quick_images("corrupt/fog", 60));
 
     // Step 1: fog, activated as the version's own model (adapt.rs). Its regression set holds
