@@ -126,7 +126,11 @@ impl Signature {
     /// Gaussian log-likelihood of one image's statistics, up to the constant every signature
     /// shares.
     pub fn log_likelihood(&self, stats: &[f64; STATS]) -> f64 {
-        -0.5 * (self.distance2(stats) + self.log_det)
+        self.log_likelihood_at(self.distance2(stats))
+    }
+
+    fn log_likelihood_at(&self, distance2: f64) -> f64 {
+        -0.5 * (distance2 + self.log_det)
     }
 
     /// Squared Mahalanobis distance of one image's statistics to the mean.
@@ -140,15 +144,7 @@ impl Signature {
 /// The index of the signature most likely to have produced `stats` (the first on ties); `None`
 /// for no signatures.
 pub fn route(signatures: &[&Signature], stats: &[f64; STATS]) -> Option<usize> {
-    signatures
-        .iter()
-        .map(|s| s.log_likelihood(stats))
-        .enumerate()
-        .fold(None, |best: Option<(usize, f64)>, (i, l)| match best {
-            Some((_, b)) if b >= l => best,
-            _ => Some((i, l)),
-        })
-        .map(|(i, _)| i)
+    most_likely(signatures.iter().map(|s| s.log_likelihood(stats)).enumerate())
 }
 
 /// A signature with an acceptance bound: an image belongs to the domain when its Mahalanobis
@@ -196,10 +192,11 @@ impl Domain {
 
     /// The image's log-likelihood when the domain takes it.
     pub fn accepts(&self, stats: &[f64; STATS]) -> Option<f64> {
-        if self.signature.distance2(stats) > self.max_distance2 {
+        let d2 = self.signature.distance2(stats);
+        if d2 > self.max_distance2 {
             return None;
         }
-        let l = self.signature.log_likelihood(stats);
+        let l = self.signature.log_likelihood_at(d2);
         match &self.rival {
             Some(rival) if rival.log_likelihood(stats) >= l => None,
             _ => Some(l),
@@ -210,10 +207,12 @@ impl Domain {
 /// The domain that takes `stats` with the highest likelihood (the first on ties); `None` when
 /// none takes it.
 pub fn pick(domains: &[&Domain], stats: &[f64; STATS]) -> Option<usize> {
-    domains
-        .iter()
-        .enumerate()
-        .filter_map(|(i, d)| d.accepts(stats).map(|l| (i, l)))
+    most_likely(domains.iter().enumerate().filter_map(|(i, d)| d.accepts(stats).map(|l| (i, l))))
+}
+
+/// The index with the highest log-likelihood (the first on ties).
+fn most_likely(scores: impl Iterator<Item = (usize, f64)>) -> Option<usize> {
+    scores
         .fold(None, |best: Option<(usize, f64)>, (i, l)| match best {
             Some((_, b)) if b >= l => best,
             _ => Some((i, l)),

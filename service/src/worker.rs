@@ -113,9 +113,6 @@ impl Loaded {
     /// Which estimator answers each crop: 0 the version's own, `i + 1` its expert `i`
     /// (the one whose domain takes the crop with the highest likelihood).
     fn route(&self, crops: &[&Crop]) -> Vec<usize> {
-        if self.experts.is_empty() {
-            return vec![0; crops.len()];
-        }
         let domains: Vec<&Domain> = self.experts.iter().map(|(d, _)| d).collect();
         crops
             .iter()
@@ -337,6 +334,9 @@ fn infer(
     config: &WorkerConfig,
     pool: Option<&rayon::ThreadPool>,
 ) -> Result<(Vec<CropResult>, f64), ApiError> {
+    if loaded.experts.is_empty() {
+        return infer_on(loaded, &loaded.estimator, crops, config, pool);
+    }
     let routes = loaded.route(crops);
     let mut results: Vec<Option<CropResult>> = crops.iter().map(|_| None).collect();
     let mut backbone_ms = 0.0;

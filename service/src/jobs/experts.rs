@@ -60,11 +60,6 @@ pub(super) fn rows_of(stats: &[[f64; STATS]], experts: &[Expert], member: Option
     (0..stats.len()).filter(|&i| pick(&domains, &stats[i]) == member).collect()
 }
 
-/// The rows no expert takes: what the version's own tensors answer.
-pub(super) fn own_rows(stats: &[[f64; STATS]], experts: &[Expert]) -> Vec<usize> {
-    rows_of(stats, experts, None)
-}
-
 /// What a job adapts and the gate compares the candidate with: the source version's own
 /// tensors, or, where most of the job's training images go to one of its experts, that expert
 /// (the candidate then replaces it in a new composite).
@@ -73,6 +68,8 @@ pub(super) struct Start {
     pub source: Model,
     /// The expert adapted, by index among the source's experts, and its model.
     pub expert: Option<(usize, Model)>,
+    /// The statistics of the job's training images (routing and an expert's domain).
+    pub train: Vec<[f64; STATS]>,
 }
 
 impl Start {
@@ -128,11 +125,8 @@ impl Jobs {
     /// Where the job starts: the expert that more than half of its training images go to, if
     /// any, else the source's own tensors.
     pub(super) fn starting_point(&self, spec: &JobSpec, source: Model) -> Result<Start> {
-        let experts = &source.manifest.experts;
-        if experts.is_empty() {
-            return Ok(Start { source, expert: None });
-        }
         let train = stats(&self.images(&spec.category, &spec.train, source.manifest.crop)?)?;
+        let experts = &source.manifest.experts;
         let majority = (0..experts.len()).find(|&i| 2 * rows_of(&train, experts, Some(i)).len() > train.len());
         let expert = match majority {
             Some(i) => {
@@ -141,7 +135,7 @@ impl Jobs {
             }
             None => None,
         };
-        Ok(Start { source, expert })
+        Ok(Start { source, expert, train })
     }
 
     /// Whether the candidate may join the source as an expert: its domain fitted on the job's
@@ -150,10 +144,11 @@ impl Jobs {
     pub(super) fn expert(
         &self,
         spec: &JobSpec,
-        source: &Model,
+        start: &Start,
         held: &Compared,
         sets: &[(String, Compared)],
     ) -> Result<std::result::Result<(Expert, String), String>> {
+        let source = &start.source;
         let bounds = &self.config.experts;
         let held_by = source.manifest.experts.len();
         if held_by >= bounds.max {
@@ -162,8 +157,8 @@ impl Jobs {
                 spec.source_version, bounds.max
             )));
         }
-        let train = stats(&self.images(&spec.category, &spec.train, source.manifest.crop)?)?;
-        let own: Vec<[f64; STATS]> = own_rows(&train, &source.manifest.experts).into_iter().map(|r| train[r]).collect();
+        let own: Vec<[f64; STATS]> =
+            rows_of(&start.train, &source.manifest.experts, None).into_iter().map(|r| start.train[r]).collect();
         let mut domain = match Domain::fit(&own, bounds.coverage) {
             Ok(domain) => domain,
             Err(e) => return Ok(Err(format!("no domain signature: {e}"))),
@@ -193,7 +188,8 @@ impl Jobs {
         }
         if !regressed.is_empty() {
             return Ok(Err(format!(
-                "it takes too much of earlier domains: {}",
+                "it would take {} and so still regress: {}",
+                shares.join(", "),
                 super::run::regressions(&regressed).join("; ")
             )));
         }
@@ -276,8 +272,10 @@ mod tests {
         // An existing expert with that domain answers the near images: only the far ones are
         // the version's own.
         let expert = Expert { version: "v".into(), domain };
-        assert_eq!(own_rows(&compared.stats, std::slice::from_ref(&expert)), (10..20).collect::<Vec<_>>());
-        assert_eq!(own_rows(&compared.stats, &[]).len(), 20);
+        let own = |experts: &[Expert]| rows_of(&compared.stats, experts, None);
+        assert_eq!(own(std::slice::from_ref(&expert)), (10..20).collect::<Vec<_>>());
+        assert_eq!(rows_of(&compared.stats, std::slice::from_ref(&expert), Some(0)).len(), taken);
+        assert_eq!(own(&[]).len(), 20);
     }
 
     #[test]

@@ -205,7 +205,7 @@ impl Jobs {
         };
         if !decision.passed && self.config.enforce_gate {
             let as_expert = match start.expert {
-                None if passed_alone => self.expert(spec, &start.source, &held, &sets)?,
+                None if passed_alone => self.expert(spec, start, &held, &sets)?,
                 _ => Err(String::new()),
             };
             return match as_expert {
