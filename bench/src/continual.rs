@@ -30,6 +30,7 @@ use udapose_engine::pose_error;
 use udapose_lab::{atomic::write_atomic, datasets::syncar::SyncarSplit};
 
 use crate::harness::{ServerProcess, estimate, git_commit, post_or_get, read_images, server_binary};
+use crate::paired::Paired;
 use crate::service::clients::Clients;
 
 #[derive(clap::Args)]
@@ -83,10 +84,10 @@ impl TestSet {
         Ok(TestSet { images })
     }
 
-    /// Acc@π/6 of the server's active version; errors when any estimate fails.
-    fn accuracy(&self, server: &ServerProcess) -> Result<f64> {
-        let right: Vec<bool> = self
-            .images
+    /// Per image, whether the server's active version gets it within π/6; errors when any
+    /// estimate fails.
+    fn right(&self, server: &ServerProcess) -> Result<Vec<bool>> {
+        self.images
             .par_iter()
             .map(|(bytes, truth)| {
                 let (status, body) = post_or_get(server.http, "POST", "/v1/pose/car", bytes)?;
@@ -96,9 +97,13 @@ impl TestSet {
                 let angles = ["azimuth", "elevation", "theta"].map(|k| p[k].as_f64().unwrap_or(f64::NAN));
                 Ok(pose_error(Some(angles), *truth) < FRAC_PI_6)
             })
-            .collect::<Result<_>>()?;
-        Ok(right.iter().filter(|&&r| r).count() as f64 / right.len() as f64)
+            .collect()
     }
+}
+
+/// Acc@π/6 from per-image flags.
+fn share(right: &[bool]) -> f64 {
+    right.iter().filter(|&&r| r).count() as f64 / right.len().max(1) as f64
 }
 
 pub fn run(args: &ContinualArgs) -> Result<()> {
@@ -135,7 +140,8 @@ pub fn run(args: &ContinualArgs) -> Result<()> {
         "rows": rows,
         "forgetting_max": forgetting_max(&continual),
         "forgetting_max_independent": forgetting_max(rows["independent"].as_array().map_or(&[][..], Vec::as_slice)),
-        "gain_ratio_min": gain_ratio_min(&continual),
+        "gain_ratio_min": gain_ratio_min(&continual, false),
+        "gain_ratio_min_beyond_noise": gain_ratio_min(&continual, true),
         "failed_requests": failed,
         "seconds": started.elapsed().as_secs_f64(),
     });
@@ -160,14 +166,17 @@ fn run_row(
     let probe: Arc<Vec<Vec<u8>>> =
         Arc::new(tests.values().flat_map(|t| t.images.iter().take(4)).map(|(b, _)| b.clone()).collect());
     let clients = Clients::start(server.http, &probe, args.clients);
-    let measure_all = |server: &ServerProcess| -> Result<BTreeMap<String, f64>> {
-        tests.iter().map(|(d, t)| Ok((d.clone(), t.accuracy(server)?))).collect()
+    let measure_all = |server: &ServerProcess| -> Result<BTreeMap<String, Vec<bool>>> {
+        tests.iter().map(|(d, t)| Ok((d.clone(), t.right(server)?))).collect()
     };
-    let mut acc = measure_all(&server)?;
+    let accuracies = |right: &BTreeMap<String, Vec<bool>>| -> BTreeMap<String, f64> {
+        right.iter().map(|(d, r)| (d.clone(), share(r))).collect()
+    };
+    let mut right = measure_all(&server)?;
     let mut steps = Vec::new();
     for (step, domain) in sequence.iter().enumerate() {
-        let before = acc.clone();
-        let mut entry = json!({ "step": step + 1, "domain": domain, "acc_before": before });
+        let before = right.clone();
+        let mut entry = json!({ "step": step + 1, "domain": domain, "acc_before": accuracies(&before) });
         if flags.is_none() {
             entry["gate"] = json!("none");
             entry["activated"] = json!(false);
@@ -179,7 +188,7 @@ fn run_row(
                 step + 1,
                 job["reason"].as_str().unwrap_or("")
             );
-            acc = measure_all(&server)?;
+            right = measure_all(&server)?;
             entry["job_id"] = job["job_id"].clone();
             entry["gate"] = json!(state);
             entry["reason"] = job["reason"].clone();
@@ -196,15 +205,24 @@ fn run_row(
             let candidate = job["version"].as_str().unwrap_or("");
             let active = server.get_json("/v1/models/car")?["version"].as_str().unwrap_or("").to_owned();
             entry["active_version"] = json!(active);
-            entry["alone_acc"] = if state == "ACTIVATED" && active == candidate {
-                json!(acc[domain])
+            let alone = if state == "ACTIVATED" && active == candidate {
+                Some(right[domain].clone())
             } else if !candidate.is_empty() {
-                json!(candidate_accuracy(&server, candidate, &tests[domain])?)
+                Some(candidate_right(&server, candidate, &tests[domain])?)
             } else {
-                Value::Null
+                None
             };
+            entry["alone_acc"] = json!(alone.as_deref().map(share));
+            // Whether the job alone would have gained beyond the noise of the test images, and
+            // whether the step did: image by image against the starting model.
+            let paired = |after: &[bool]| {
+                let p = Paired::new(&before[domain], after);
+                json!({ "lost": p.lost, "gained": p.gained, "mcnemar_z": p.z(), "significant": p.significant() })
+            };
+            entry["alone_paired"] = json!(alone.as_deref().map(paired));
+            entry["step_paired"] = paired(&right[domain]);
         }
-        entry["acc_pi_6"] = json!(acc);
+        entry["acc_pi_6"] = json!(accuracies(&right));
         steps.push(entry);
     }
     let failures = clients.stop().iter().filter(|r| r.answer.is_err()).count();
@@ -234,15 +252,15 @@ fn run_job(args: &ContinualArgs, server: &ServerProcess, domain: &str) -> Result
     }
 }
 
-/// Acc@π/6 of a version the gate refused: activated for the measurement, then the version that
-/// was active before it is activated again.
-fn candidate_accuracy(server: &ServerProcess, version: &str, test: &TestSet) -> Result<f64> {
+/// Per-image flags of a version the gate refused: activated for the measurement, then the
+/// version that was active before it is activated again.
+fn candidate_right(server: &ServerProcess, version: &str, test: &TestSet) -> Result<Vec<bool>> {
     let active = server.get_json("/v1/models/car")?["version"].as_str().context("no active version")?.to_owned();
     let probe = &test.images[0].0;
     activate(server, version, probe)?;
-    let acc = test.accuracy(server);
+    let right = test.right(server);
     activate(server, &active, probe)?;
-    acc
+    right
 }
 
 /// Activates `version` and waits until estimates of `probe` name it (workers swap between
@@ -275,9 +293,10 @@ fn forgetting_max(steps: &[Value]) -> f64 {
 }
 
 /// Over the steps whose job alone would have gained (its candidate above the starting
-/// accuracy on the step's domain), the smallest ratio of the step's actual gain to that gain;
-/// null when no step's job would have gained.
-fn gain_ratio_min(steps: &[Value]) -> Value {
+/// accuracy on the step's domain; with `beyond_noise`, by McNemar's z ≥ 1.96 on the test
+/// images), the smallest ratio of the step's actual gain to that gain; null when no step's job
+/// would have gained. A gain of one or two images of 300 is noise: a ratio to it says nothing.
+fn gain_ratio_min(steps: &[Value], beyond_noise: bool) -> Value {
     let ratios: Vec<f64> = steps
         .iter()
         .filter_map(|s| {
@@ -285,7 +304,8 @@ fn gain_ratio_min(steps: &[Value]) -> Value {
             let before = s["acc_before"][d].as_f64()?;
             let alone = s["alone_acc"].as_f64()? - before;
             let actual = s["acc_pi_6"][d].as_f64()? - before;
-            (alone > 0.0).then_some(actual / alone)
+            let counted = alone > 0.0 && (!beyond_noise || s["alone_paired"]["mcnemar_z"].as_f64()? >= 1.96);
+            counted.then_some(actual / alone)
         })
         .collect();
     ratios.into_iter().reduce(f64::min).map_or(Value::Null, |r| json!(r))
@@ -327,6 +347,7 @@ fn markdown(report: &Value, args: &ContinualArgs) -> String {
                 s["gate"].as_str().unwrap_or(""),
                 s["job_seconds"].as_f64().map_or("-".into(), |x| format!("{x:.0}")),
                 num(&s["alone_acc"])
+                    + &s["alone_paired"]["mcnemar_z"].as_f64().map_or(String::new(), |z| format!(" (z {z:+.1})"))
             );
             for d in &domains {
                 md += &format!(" {} |", num(&s["acc_pi_6"][d]));
@@ -345,11 +366,49 @@ fn markdown(report: &Value, args: &ContinualArgs) -> String {
         md += "\n";
     }
     md += &format!(
-        "forgetting_max (continual) {:.3}, (independent) {:.3}; gain_ratio_min {}; failed requests {}.\n",
+        "forgetting_max (continual) {:.3}, (independent) {:.3}; gain_ratio_min {} (over the steps whose job \
+         alone gains beyond noise, McNemar z >= 1.96: {}); failed requests {}.\n",
         report["forgetting_max"].as_f64().unwrap_or(f64::NAN),
         report["forgetting_max_independent"].as_f64().unwrap_or(f64::NAN),
         report["gain_ratio_min"],
+        report["gain_ratio_min_beyond_noise"],
         report["failed_requests"]
     );
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn step(domain: &str, before: f64, after: f64, alone: f64, alone_z: f64) -> Value {
+        json!({
+            "domain": domain,
+            "acc_before": { domain: before },
+            "acc_pi_6": { domain: after },
+            "alone_acc": alone,
+            "alone_paired": { "mcnemar_z": alone_z },
+        })
+    }
+
+    #[test]
+    fn gain_ratio_counts_only_gains_beyond_noise_when_asked() {
+        // A refused job that alone would have gained one image (z 1.0), and a kept one that
+        // gains half of what it would alone (z 3.0).
+        let steps = [step("fog", 0.5, 0.5, 0.503, 1.0), step("snow", 0.4, 0.45, 0.5, 3.0)];
+        assert_eq!(gain_ratio_min(&steps, false), json!(0.0));
+        let beyond = gain_ratio_min(&steps, true).as_f64().unwrap();
+        assert!((beyond - 0.5).abs() < 1e-9, "{beyond}");
+        let no_gain = [step("fog", 0.5, 0.5, 0.49, -1.0)];
+        assert_eq!(gain_ratio_min(&no_gain, false), Value::Null);
+    }
+
+    #[test]
+    fn forgetting_is_the_largest_drop_below_a_seen_domains_best() {
+        let at =
+            |domain: &str, fog: f64, snow: f64| json!({ "domain": domain, "acc_pi_6": { "fog": fog, "snow": snow } });
+        // Snow is not yet seen at step 1, so its fall there does not count; fog's later fall does.
+        let steps = [at("fog", 0.8, 0.3), at("snow", 0.75, 0.6), at("snow", 0.7, 0.65)];
+        assert!((forgetting_max(&steps) - 0.1).abs() < 1e-9);
+    }
 }

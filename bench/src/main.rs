@@ -8,6 +8,7 @@ mod continual;
 mod gate;
 mod harness;
 mod input;
+mod paired;
 mod scale;
 mod service;
 mod solver;

@@ -35,6 +35,8 @@ use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::load_sample;
 use udapose_lab::synth::all_domains;
 
+use crate::paired::Paired;
+
 #[derive(clap::Args)]
 pub struct GateArgs {
     /// The active model (the shipped source model).
@@ -290,25 +292,13 @@ fn estimate_all(model: &Model, images: &Tensor, config: &SolverConfig) -> Result
 struct TestSplit {
     source: f64,
     adapted: f64,
-    /// Images only the source model gets right (< π/6), and only the adapted one.
-    lost: usize,
-    gained: usize,
+    /// Source → adapted, image by image.
+    paired: Paired,
 }
 
 impl TestSplit {
     fn change(&self) -> f64 {
         self.adapted - self.source
-    }
-
-    /// McNemar's statistic of the paired change, `(gained − lost)/√(gained + lost)`: beyond
-    /// ±1.96 the change is unlikely to be noise of the test images.
-    fn z(&self) -> f64 {
-        let n = (self.gained + self.lost) as f64;
-        if n == 0.0 { 0.0 } else { (self.gained as f64 - self.lost as f64) / n.sqrt() }
-    }
-
-    fn significant(&self) -> bool {
-        self.z().abs() >= 1.96
     }
 }
 
@@ -327,7 +317,7 @@ fn test_accuracy(eval: &Path, domain: &str) -> Option<TestSplit> {
         return None;
     }
     let right = |e: f64| e < 30.0;
-    let lost = s.iter().zip(&a).filter(|(s, a)| right(**s) && !right(**a)).count();
-    let gained = s.iter().zip(&a).filter(|(s, a)| !right(**s) && right(**a)).count();
-    Some(TestSplit { source, adapted, lost, gained })
+    let paired =
+        Paired::new(&s.iter().map(|&e| right(e)).collect::<Vec<_>>(), &a.iter().map(|&e| right(e)).collect::<Vec<_>>());
+    Some(TestSplit { source, adapted, paired })
 }

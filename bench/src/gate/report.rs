@@ -200,7 +200,7 @@ fn domain_report(r: &DomainResult, config: &GateConfig, totals: &mut Totals) -> 
     let ok_adapt = agrees(d.passed, adapt_change);
     let ok_test = test_change.and_then(|c| agrees(d.passed, c));
     if let (Some(t), Some(ok)) = (r.test, ok_test)
-        && t.significant()
+        && t.paired.significant()
     {
         totals.counted_significant += 1;
         totals.agree_significant += usize::from(ok);
@@ -226,7 +226,7 @@ fn domain_report(r: &DomainResult, config: &GateConfig, totals: &mut Totals) -> 
         held_change,
         adapt_change,
         fmt_agree(ok_adapt),
-        r.test.map_or("n/a".into(), |t| format!("{:+.3} ({:+.1})", t.change(), t.z())),
+        r.test.map_or("n/a".into(), |t| format!("{:+.3} ({:+.1})", t.change(), t.paired.z())),
         if test_change.is_some() { fmt_agree(ok_test) } else { "n/a" },
     );
     let value = json!({
@@ -238,7 +238,8 @@ fn domain_report(r: &DomainResult, config: &GateConfig, totals: &mut Totals) -> 
         "adapt_split_acc_pi_6": {"source": split_s, "adapted": split_a, "change": adapt_change, "images": split_n, "agrees": ok_adapt},
         "test_acc_pi_6": r.test.map(|t| json!({
             "source": t.source, "adapted": t.adapted, "change": t.change(), "agrees": ok_test,
-            "lost": t.lost, "gained": t.gained, "mcnemar_z": t.z(), "significant": t.significant(),
+            "lost": t.paired.lost, "gained": t.paired.gained, "mcnemar_z": t.paired.z(),
+            "significant": t.paired.significant(),
         })),
         "per_image": per_image_json(r),
     });
