@@ -139,6 +139,7 @@ pub fn run(args: &ContinualArgs) -> Result<()> {
         "test_images": args.test_images,
         "rows": rows,
         "forgetting_max": forgetting_max(&continual),
+        "forgetting_worst": worst_forgetting(&continual),
         "forgetting_max_independent": forgetting_max(rows["independent"].as_array().map_or(&[][..], Vec::as_slice)),
         "gain_ratio_min": gain_ratio_min(&continual, false),
         "gain_ratio_min_beyond_noise": gain_ratio_min(&continual, true),
@@ -223,6 +224,13 @@ fn run_row(
             entry["step_paired"] = paired(&right[domain]);
         }
         entry["acc_pi_6"] = json!(accuracies(&right));
+        // Per image, right (1) or not (0): the forgetting's paired statistic.
+        entry["right"] = json!(
+            right
+                .iter()
+                .map(|(d, r)| (d.clone(), r.iter().map(|&x| if x { '1' } else { '0' }).collect::<String>()))
+                .collect::<BTreeMap<_, _>>()
+        );
         steps.push(entry);
     }
     let failures = clients.stop().iter().filter(|r| r.answer.is_err()).count();
@@ -278,18 +286,41 @@ fn activate(server: &ServerProcess, version: &str, probe: &[u8]) -> Result<()> {
 /// The largest drop, after any step, of a domain already adapted to below its best accuracy
 /// since it was first a step's domain (0 with no drop).
 fn forgetting_max(steps: &[Value]) -> f64 {
-    let mut best: BTreeMap<String, f64> = BTreeMap::new();
-    let mut worst: f64 = 0.0;
-    for s in steps {
+    worst_forgetting(steps).map_or(0.0, |w| w["drop"].as_f64().unwrap_or(f64::NAN))
+}
+
+/// Where [`forgetting_max`]'s drop happened: the domain, the step and the step of its best, and
+/// McNemar's z of the change between them on the test images (null without a drop).
+fn worst_forgetting(steps: &[Value]) -> Option<Value> {
+    // Per seen domain: its best accuracy and the index of the step that gave it.
+    let mut best: BTreeMap<String, (f64, usize)> = BTreeMap::new();
+    let mut worst: Option<(f64, String, usize, usize)> = None;
+    for (i, s) in steps.iter().enumerate() {
         let Some(domain) = s["domain"].as_str() else { continue };
         let acc = |d: &str| s["acc_pi_6"][d].as_f64().unwrap_or(f64::NAN);
-        best.entry(domain.into()).or_insert(f64::NEG_INFINITY);
+        best.entry(domain.into()).or_insert((f64::NEG_INFINITY, i));
         for (d, b) in best.iter_mut() {
-            *b = b.max(acc(d));
-            worst = worst.max(*b - acc(d));
+            if acc(d) > b.0 {
+                *b = (acc(d), i);
+            }
+            let drop = b.0 - acc(d);
+            if drop > worst.as_ref().map_or(0.0, |w| w.0) {
+                worst = Some((drop, d.clone(), i, b.1));
+            }
         }
     }
-    worst
+    let (drop, domain, at, best_at) = worst?;
+    let flags = |i: usize| -> Option<Vec<bool>> {
+        Some(steps[i]["right"][&domain].as_str()?.chars().map(|c| c == '1').collect())
+    };
+    let z = flags(best_at).zip(flags(at)).map(|(b, a)| Paired::new(&b, &a).z());
+    Some(json!({
+        "domain": domain,
+        "drop": drop,
+        "step": steps[at]["step"],
+        "best_step": steps[best_at]["step"],
+        "mcnemar_z": z,
+    }))
 }
 
 /// Over the steps whose job alone would have gained (its candidate above the starting
@@ -366,15 +397,30 @@ fn markdown(report: &Value, args: &ContinualArgs) -> String {
         md += "\n";
     }
     md += &format!(
-        "forgetting_max (continual) {:.3}, (independent) {:.3}; gain_ratio_min {} (over the steps whose job \
+        "forgetting_max (continual) {:.3} ({}), (independent) {:.3}; gain_ratio_min {} (over the steps whose job \
          alone gains beyond noise, McNemar z >= 1.96: {}); failed requests {}.\n",
         report["forgetting_max"].as_f64().unwrap_or(f64::NAN),
+        worst_words(&report["forgetting_worst"]),
         report["forgetting_max_independent"].as_f64().unwrap_or(f64::NAN),
         report["gain_ratio_min"],
         report["gain_ratio_min_beyond_noise"],
         report["failed_requests"]
     );
     md
+}
+
+/// "occ-l1 at step 5, below its best at step 4 (McNemar z -2.1)".
+fn worst_words(w: &Value) -> String {
+    if w.is_null() {
+        return "no drop".into();
+    }
+    let z = w["mcnemar_z"].as_f64().map_or(String::new(), |z| format!(" (McNemar z {z:+.1})"));
+    format!(
+        "{} at step {}, below its best at step {}{z}",
+        w["domain"].as_str().unwrap_or("?"),
+        w["step"],
+        w["best_step"]
+    )
 }
 
 #[cfg(test)]
@@ -405,10 +451,19 @@ mod tests {
 
     #[test]
     fn forgetting_is_the_largest_drop_below_a_seen_domains_best() {
-        let at =
-            |domain: &str, fog: f64, snow: f64| json!({ "domain": domain, "acc_pi_6": { "fog": fog, "snow": snow } });
+        let at = |step: u32, domain: &str, fog: f64, snow: f64| json!({ "step": step, "domain": domain, "acc_pi_6": { "fog": fog, "snow": snow } });
         // Snow is not yet seen at step 1, so its fall there does not count; fog's later fall does.
-        let steps = [at("fog", 0.8, 0.3), at("snow", 0.75, 0.6), at("snow", 0.7, 0.65)];
+        let mut steps = [at(1, "fog", 0.8, 0.3), at(2, "snow", 0.75, 0.6), at(3, "snow", 0.7, 0.65)];
         assert!((forgetting_max(&steps) - 0.1).abs() < 1e-9);
+        // With per-image flags: 10 images, 8 right at step 1, 7 at step 3 (one lost, none gained).
+        steps[0]["right"] = json!({ "fog": "1111111100" });
+        steps[2]["right"] = json!({ "fog": "0111111100" });
+        let w = worst_forgetting(&steps).unwrap();
+        assert_eq!(
+            (w["domain"].as_str(), w["step"].clone(), w["best_step"].clone()),
+            (Some("fog"), json!(3), json!(1))
+        );
+        assert_eq!(w["mcnemar_z"], json!(-1.0));
+        assert_eq!(worst_forgetting(&steps[..1]), None);
     }
 }
