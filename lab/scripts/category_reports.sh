@@ -6,7 +6,10 @@
 # $UDAPOSE_CACHE/run/report-standard-C and skipped when done, so a rerun (another session) goes
 # on where this one stopped. The report goes to reports/syncar-ood-C.{json,md} and its PNGs.
 # The global-filter ablation stays car's alone (`--ablation none`): it answers a question about
-# the method, not about the category. About an hour per category on the 2-core CPU.
+# the method, not about the category; so does adaptation over seeds (`--seeds 1`). About 2-3
+# hours per category on the 2-core CPU, most of it the strong oracle (10-40 passes over 300
+# images). Run one report at a time: two libtorch jobs on 2 cores slow each other several-fold
+# (a strong-oracle pass went from ~25 s to ~230 s beside two others).
 #   lab/scripts/category_reports.sh [CATEGORY ...]     (default: every shipped one but car)
 set -euo pipefail
 CACHE=${UDAPOSE_CACHE:-$HOME/.cache/udapose}
@@ -23,5 +26,5 @@ for c in "${categories[@]}"; do
   [ -f "models/$c/manifest.json" ] || { echo "no models/$c: ship it first (lab/scripts/ship_category.py $c)" >&2; exit 1; }
   echo "== $c"
   "$LAB" report --profile standard --category "$c" --data "$CACHE/data/syncar-ood-standard-$c" \
-    --work "$CACHE/run/report-standard-$c" --domains "$DOMAINS" --ablation none
+    --work "$CACHE/run/report-standard-$c" --domains "$DOMAINS" --ablation none --seeds 1
 done

@@ -59,6 +59,8 @@ fn run_report(data: &Path, source: &Path, work: &Path, out: &Path) -> (bool, Str
         "combined",
         "--strong",
         "combined",
+        "--seeds",
+        "2",
         "--out",
         &out,
     ])
@@ -115,6 +117,19 @@ fn quick_report_adapts_combined_without_collapsing() {
     let gain = d["adapt_gain"].as_f64().unwrap();
     assert!(lo <= gain && gain <= hi && (gain - (acc("adapted") - acc("source"))).abs() < 1e-9, "{d}");
     assert!(hi >= 0.0, "adapted − source {gain:+.3} [{lo:+.3}, {hi:+.3}] on combined: significantly worse");
+    // Seed 0 is the adapted model; seed 1 its own run, whose accuracy the mean and range take in.
+    let seeds: Vec<(u64, f64)> = d["seeds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| (s["seed"].as_u64().unwrap(), s["acc_pi_6"].as_f64().unwrap()))
+        .collect();
+    assert_eq!(seeds.iter().map(|s| s.0).collect::<Vec<_>>(), [0, 1], "{d}");
+    assert_eq!(seeds[0].1, acc("adapted"));
+    assert!(work.join("adapted_seed1/combined/manifest.json").is_file());
+    let (a0, a1) = (seeds[0].1, seeds[1].1);
+    assert!((d["seeds_mean"].as_f64().unwrap() - (a0 + a1) / 2.0).abs() < 1e-9, "{d}");
+    assert_eq!(d["seeds_range"], serde_json::json!([a0.min(a1), a0.max(a1)]));
     let em = d["em_gain"].as_f64().unwrap();
     assert!((em - (acc("adapted") - d["batchnorm_only"]["acc_pi_6"].as_f64().unwrap())).abs() < 1e-9, "{d}");
 

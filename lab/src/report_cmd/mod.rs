@@ -10,11 +10,15 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use serde_json::{Value, json};
-use udapose_engine::metrics::paired_bootstrap;
 use udapose_lab::assets::category::Category;
 use udapose_lab::datasets::syncar::SplitPaths;
 
 use crate::plot;
+
+mod seeds;
+mod stats;
+
+use stats::{f, gain, gap_closed, mean, mean_of, metrics, model_version};
 
 /// Domains adapted in `standard` (BENCHMARK.md §5), in the order they run: the acceptance
 /// domains first. `source` is adapted too, for the cost of adapting in-domain.
@@ -91,6 +95,10 @@ pub struct Args {
     /// Extra flags for every `adapt` run (e.g. "--max-rounds 4"), space-separated.
     #[arg(long, default_value = "")]
     adapt_flags: String,
+    /// Adaptations per domain, seeds 0 (the `adapted` model) to N − 1: the report gives their
+    /// mean and range.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
+    seeds: u64,
 }
 
 /// The source model and the models derived from it per domain.
@@ -208,15 +216,23 @@ impl Report<'_> {
         self.work.join("eval").join(v.name()).join(format!("{}.json", slug(domain)))
     }
 
+    /// `adapt` from the source on `domain`'s adapt images into `out`, with `--adapt-flags` and
+    /// then `more`.
+    fn adapt_stage(&mut self, name: &str, domain: &str, out: &Path, more: &[&str]) -> Result<()> {
+        let (src, out_s) = (self.source.display().to_string(), out.display().to_string());
+        let images = SplitPaths::new(&self.data, domain, "adapt").images.display().to_string();
+        let mut cmd = vec!["adapt", "--model", &src, "--images", &images, "--out", &out_s];
+        let flags = self.args.adapt_flags.clone();
+        cmd.extend(flags.split_whitespace());
+        cmd.extend(more);
+        self.stage(name, out, &cmd)
+    }
+
     fn run_domain(&mut self, domain: &str, ablation: bool, strong: bool) -> Result<()> {
         let src = self.source.display().to_string();
         let images = SplitPaths::new(&self.data, domain, "adapt").images.display().to_string();
-        let mut extra: Vec<String> = self.args.adapt_flags.split_whitespace().map(String::from).collect();
         let adapted = self.model_dir(Variant::Adapted, domain);
-        let mut cmd = vec!["adapt".to_string(), "--model".into(), src.clone(), "--images".into(), images.clone()];
-        cmd.extend(["--out".into(), adapted.display().to_string()]);
-        cmd.extend(extra.iter().cloned());
-        self.stage(&format!("adapt {domain}"), &adapted, &cmd.iter().map(String::as_str).collect::<Vec<_>>())?;
+        self.adapt_stage(&format!("adapt {domain}"), domain, &adapted, &[])?;
         // One round with α = 1 and no backbone step leaves C and the weights as they were: the
         // model differs from the source by its BatchNorm statistics alone.
         let bn = self.model_dir(Variant::BatchnormOnly, domain).display().to_string();
@@ -242,29 +258,26 @@ impl Report<'_> {
         }
         if ablation {
             let global = self.model_dir(Variant::Global, domain);
-            extra.extend(["--global-filter".into(), "0.5".into()]);
-            let mut cmd = vec!["adapt".to_string(), "--model".into(), src, "--images".into(), images];
-            cmd.extend(["--out".into(), global.display().to_string()]);
-            cmd.extend(extra);
-            self.stage(&format!("global {domain}"), &global, &cmd.iter().map(String::as_str).collect::<Vec<_>>())?;
+            self.adapt_stage(&format!("global {domain}"), domain, &global, &["--global-filter", "0.5"])?;
         }
         for v in VARIANTS {
             if self.model_dir(v, domain).join("manifest.json").is_file() {
                 self.evaluate(v, domain)?;
             }
         }
-        Ok(())
+        self.run_seeds(domain)
     }
 
     /// The `eval` stage of model `v` on `domain`'s test split.
     fn evaluate(&mut self, v: Variant, domain: &str) -> Result<()> {
         let (model, out) = (self.model_dir(v, domain), self.eval_file(v, domain));
+        self.eval_stage(&format!("eval {} {domain}", v.name()), domain, &model, &out)
+    }
+
+    /// `eval` of `model` on `domain`'s test split into `out`.
+    fn eval_stage(&mut self, name: &str, domain: &str, model: &Path, out: &Path) -> Result<()> {
         let (m, o, d) = (model.display().to_string(), out.display().to_string(), self.data.display().to_string());
-        self.stage(
-            &format!("eval {} {domain}", v.name()),
-            &out,
-            &["eval", "--model", &m, "--data", &d, "--domains", domain, "--out", &o],
-        )
+        self.stage(name, out, &["eval", "--model", &m, "--data", &d, "--domains", domain, "--out", &o])
     }
 
     /// Whether the source model leaves less than [`MIN_GAP`] to gain on `domain` (its test
@@ -353,6 +366,7 @@ impl Report<'_> {
             "adapt_seconds": seconds("adapt"), "oracle_seconds": seconds("oracle"),
             "strong_oracle_seconds": seconds("strong oracle"), "global_seconds": seconds("global"),
         });
+        entry.as_object_mut().expect("an object").extend(self.seeds_entry(domain, &a));
         let fired = |e: &Option<Value>| e.as_ref().and_then(|e| mean_of(&e["fired_ratios"]));
         entry["fired_ratio"] = json!({"source": fired(&s), "adapted": fired(&a)});
         let cell = |e: &Option<Value>| {
@@ -397,6 +411,7 @@ impl Report<'_> {
             out.insert(domain.clone(), entry);
         }
         md.push_str(&self.acceptance(&out));
+        md.push_str(&seeds::table(&out));
         if let (Some(s), Some(a)) =
             (self.evaluation(Variant::Source, "combined"), self.evaluation(Variant::Adapted, "combined"))
         {
@@ -513,76 +528,4 @@ fn gap_text(e: &Value) -> String {
 
 fn slug(domain: &str) -> String {
     domain.replace('/', "-")
-}
-
-fn f(v: &Value) -> f64 {
-    v.as_f64().unwrap_or(f64::NAN)
-}
-
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
-fn mean_of(v: &Value) -> Option<f64> {
-    let x: Vec<f64> = v.as_array()?.iter().filter_map(Value::as_f64).collect();
-    (!x.is_empty()).then(|| mean(&x))
-}
-
-/// `M` of the report schema with its intervals (the per-image arrays stay in the eval files).
-fn metrics(e: &Option<Value>) -> Value {
-    let Some(e) = e else { return Value::Null };
-    let keys = ["acc_pi_6", "acc_pi_18", "med_err_deg", "n", "acc_pi_6_ci", "acc_pi_18_ci", "med_err_deg_ci"];
-    Value::Object(keys.iter().map(|k| (k.to_string(), e[*k].clone())).collect())
-}
-
-/// The source model's version, from its manifest.
-fn model_version(dir: &Path) -> Value {
-    let manifest = std::fs::read_to_string(dir.join("manifest.json")).ok();
-    manifest.and_then(|m| serde_json::from_str::<Value>(&m).ok()).map_or(Value::Null, |m| m["version"].clone())
-}
-
-/// Per test image, whether its error is under π/6 (Acc@π/6's hits).
-fn hits(e: &Value) -> Vec<bool> {
-    e["errors_deg"]
-        .as_array()
-        .map(|x| x.iter().map(|v| v.as_f64().unwrap_or(180.0) < 30.0).collect())
-        .unwrap_or_default()
-}
-
-fn share(h: &[bool], idx: &[usize]) -> f64 {
-    idx.iter().filter(|&&i| h[i]).count() as f64 / idx.len() as f64
-}
-
-/// Gap closed on Acc@π/6 and its paired bootstrap interval (the same resampled images for the
-/// three models; 1000 resamples, seed 0). None where oracle − source < [`MIN_GAP`].
-fn gap_closed(s: &Value, a: &Value, o: &Value) -> (Option<f64>, Option<[f64; 2]>) {
-    let (hs, ha, ho) = (hits(s), hits(a), hits(o));
-    let n = hs.len();
-    if n == 0 || ha.len() != n || ho.len() != n {
-        return (None, None);
-    }
-    let all: Vec<usize> = (0..n).collect();
-    let (s0, a0, o0) = (share(&hs, &all), share(&ha, &all), share(&ho, &all));
-    if o0 - s0 < MIN_GAP {
-        return (None, None);
-    }
-    let ci = paired_bootstrap(n, 1000, 0, |idx| {
-        let (s, a, o) = (share(&hs, idx), share(&ha, idx), share(&ho, idx));
-        (o - s > 0.0).then(|| (a - s) / (o - s))
-    });
-    (Some((a0 - s0) / (o0 - s0)), ci)
-}
-
-/// `to − from` on Acc@π/6 with its paired bootstrap interval (same images; 1000 resamples,
-/// seed 0): e.g. the EM gain, adapted − BN only.
-fn gain(from: &Option<Value>, to: &Option<Value>) -> (Option<f64>, Option<[f64; 2]>) {
-    let (Some(from), Some(to)) = (from, to) else { return (None, None) };
-    let (hf, ht) = (hits(from), hits(to));
-    let n = hf.len();
-    if n == 0 || ht.len() != n {
-        return (None, None);
-    }
-    let all: Vec<usize> = (0..n).collect();
-    let ci = paired_bootstrap(n, 1000, 0, |idx| Some(share(&ht, idx) - share(&hf, idx)));
-    (Some(share(&ht, &all) - share(&hf, &all)), ci)
 }
