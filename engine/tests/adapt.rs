@@ -116,6 +116,29 @@ fn nothing_fires_above_a_cosine_of_one_so_nothing_changes() {
 }
 
 #[test]
+fn batchnorm_only_moves_the_statistics_and_skips_the_rounds() {
+    let source = random_model("bnonly");
+    let bn = AdaptConfig { alpha: 1.0, update_backbone: false, ..config(-1.0) };
+    assert!(bn.batchnorm_only() && !config(-1.0).batchnorm_only());
+    assert!(!AdaptConfig { update_clutter: true, ..bn.clone() }.batchnorm_only(), "the clutter would move");
+    let mut events = 0;
+    let adapted = adapt::adapt(&source, &images(4), &bn, &mut |_| {
+        events += 1;
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_eq!((adapted.rounds.len(), adapted.backbone_steps, events), (0, 0, 0), "no round ran");
+    let is_stat = |k: &str| k.ends_with(".running_mean") || k.ends_with(".running_var");
+    let split = |v: Vec<(String, Tensor)>| v.into_iter().partition::<Vec<_>, _>(|(k, _)| is_stat(k));
+    let ((stats_before, weights_before), (stats_after, weights_after)) =
+        (split(snapshot(&source.vs)), split(snapshot(&adapted.vs)));
+    assert!(same(&weights_before, &weights_after));
+    assert!(!same(&stats_before, &stats_after), "the BatchNorm statistics were not re-estimated");
+    assert!(adapted.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features));
+    assert_eq!(adapted.pseudo_poses.len(), 4);
+}
+
+#[test]
 fn the_backbone_trains_the_positives_it_is_told_to() {
     let source = random_model("positives");
     // τ = 0 on a random model: about half of the visible vertices fire.

@@ -225,6 +225,9 @@ pub fn adapt_folder(
     let (pixels, names) = load_image_folder(dir, h, w)?;
     let images = Tensor::from_slice(&pixels).reshape([names.len() as i64, 3, h as i64, w as i64]);
     eprintln!("adapting {} on {} images of {}", source.manifest.version, names.len(), dir.display());
+    if config.batchnorm_only() {
+        eprintln!("α = 1 and no backbone step: the target's BatchNorm statistics alone (AdaBN), no EM round");
+    }
     let started = Instant::now();
     let adapted = adapt::adapt(&source, &images, config, &mut reporter(config.max_rounds))?;
     let seconds = started.elapsed().as_secs_f64();

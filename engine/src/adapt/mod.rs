@@ -168,6 +168,14 @@ impl AdaptConfig {
         AdaptConfig { selection: Selection::Global(0.5), ..AdaptConfig::default() }
     }
 
+    /// Whether the EM can change nothing but what AdaBN does: α = 1 keeps every vertex
+    /// feature, the clutter stays, and no round trains the backbone (the last round never does).
+    /// Such a run (the report's *BN only*) skips the rounds' render-and-compare, whose results
+    /// it could not use.
+    pub fn batchnorm_only(&self) -> bool {
+        self.alpha >= 1.0 && !self.update_clutter && (!self.update_backbone || self.max_rounds <= 1)
+    }
+
     pub fn validate(&self) -> Result<()> {
         let unit = |x: f64| x.is_finite() && (0.0..=1.0).contains(&x);
         let ok = unit(self.min_fired_ratio)

@@ -86,6 +86,11 @@ impl<'a> Run<'a> {
     /// The EM loop (METHOD.md §7.1–7).
     pub(super) fn em(mut self, progress: &mut dyn FnMut(Event) -> ControlFlow<()>) -> Result<Adapted> {
         let config = self.config;
+        if config.batchnorm_only() {
+            self.target_batchnorm()?;
+            let n = self.n;
+            return self.finish(false, vec![None; n], Vec::new());
+        }
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
         let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&self.vs, config.lr).map_err(tch_err)?;
         let mut previous: Option<Vec<Pose>> = None;
