@@ -335,7 +335,7 @@ fn gain_ratio_min(steps: &[Value], beyond_noise: bool) -> Value {
             let before = s["acc_before"][d].as_f64()?;
             let alone = s["alone_acc"].as_f64()? - before;
             let actual = s["acc_pi_6"][d].as_f64()? - before;
-            let counted = alone > 0.0 && (!beyond_noise || s["alone_paired"]["mcnemar_z"].as_f64()? >= 1.96);
+            let counted = alone > 0.0 && (!beyond_noise || s["alone_paired"]["significant"].as_bool()?);
             counted.then_some(actual / alone)
         })
         .collect();
@@ -433,7 +433,7 @@ mod tests {
             "acc_before": { domain: before },
             "acc_pi_6": { domain: after },
             "alone_acc": alone,
-            "alone_paired": { "mcnemar_z": alone_z },
+            "alone_paired": { "mcnemar_z": alone_z, "significant": alone_z.abs() >= 1.96 },
         })
     }
 
