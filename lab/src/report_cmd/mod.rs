@@ -233,8 +233,9 @@ impl Report<'_> {
         let images = SplitPaths::new(&self.data, domain, "adapt").images.display().to_string();
         let adapted = self.model_dir(Variant::Adapted, domain);
         self.adapt_stage(&format!("adapt {domain}"), domain, &adapted, &[])?;
-        // One round with α = 1 and no backbone step leaves C and the weights as they were: the
-        // model differs from the source by its BatchNorm statistics alone.
+        // α = 1 and no backbone step leave C and the weights as they were (adapt runs no round,
+        // AdaptConfig::batchnorm_only): the model differs from the source by its BatchNorm
+        // statistics alone.
         let bn = self.model_dir(Variant::BatchnormOnly, domain).display().to_string();
         let flags = ["--max-rounds", "1", "--no-backbone", "--alpha", "1"];
         let mut cmd = vec!["adapt", "--model", &src, "--images", &images, "--out", &bn];
@@ -313,9 +314,7 @@ impl Report<'_> {
     }
 
     fn evaluation(&self, v: Variant, domain: &str) -> Option<Value> {
-        let text = std::fs::read_to_string(self.eval_file(v, domain)).ok()?;
-        let report: Value = serde_json::from_str(&text).ok()?;
-        Some(report["domains"][domain].clone())
+        read_evaluation(&self.eval_file(v, domain), domain)
     }
 
     /// The Markdown report's title, explanation and table header.
@@ -524,6 +523,12 @@ fn gap_text(e: &Value) -> String {
         }
         _ => "not run yet".into(),
     }
+}
+
+/// `domain`'s entry of an `eval` output, if it was written.
+fn read_evaluation(file: &Path, domain: &str) -> Option<Value> {
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(file).ok()?).ok()?;
+    Some(report["domains"][domain].clone())
 }
 
 fn slug(domain: &str) -> String {

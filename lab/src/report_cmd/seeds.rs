@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use serde_json::{Map, Value, json};
 
-use super::{Report, slug};
+use super::{Report, read_evaluation, slug};
 
 impl Report<'_> {
     fn seed_dir(&self, seed: u64, domain: &str) -> PathBuf {
@@ -35,9 +35,7 @@ impl Report<'_> {
     pub(super) fn seeds_entry(&self, domain: &str, adapted: &Option<Value>) -> Map<String, Value> {
         let seed0 = adapted.as_ref().and_then(|e| e["acc_pi_6"].as_f64()).map(|a| (0, a));
         let others = (1..self.args.seeds).filter_map(|seed| {
-            let text = std::fs::read_to_string(self.seed_eval(seed, domain)).ok()?;
-            let report: Value = serde_json::from_str(&text).ok()?;
-            Some((seed, report["domains"][domain]["acc_pi_6"].as_f64()?))
+            Some((seed, read_evaluation(&self.seed_eval(seed, domain), domain)?["acc_pi_6"].as_f64()?))
         });
         let accs: Vec<(u64, f64)> = seed0.into_iter().chain(others).collect();
         let values: Vec<f64> = accs.iter().map(|&(_, a)| a).collect();
