@@ -93,6 +93,10 @@ struct Args {
     /// pass it (negative: how much it may fall; see GateConfig::margin_gain for the default).
     #[arg(long, default_value_t = GateConfig::default().margin_gain, allow_negative_numbers = true)]
     margin_gain: f64,
+    /// How many paired standard errors flip consistency and the mean score margin may fall on
+    /// an earlier job's regression set before the gate refuses a candidate (0: any fall).
+    #[arg(long, value_name = "SE", default_value_t = GateConfig::default().regression_se)]
+    regression_se: f64,
     /// Largest accepted request body (HTTP) or message (gRPC), in bytes.
     #[arg(long, value_name = "BYTES", default_value_t = 16 * 1024 * 1024,
           value_parser = clap::value_parser!(u64).range(1..=u32::MAX as u64))]
@@ -312,6 +316,7 @@ fn jobs_config(
         gate: GateConfig {
             min_target_fired: args.min_target_fired,
             margin_gain: args.margin_gain,
+            regression_se: args.regression_se,
             ..Default::default()
         },
         regression: RegressionConfig { enabled: !args.no_regression_sets, ..Default::default() },
