@@ -161,8 +161,12 @@ async fn raw_pixels_and_boxes(client: &Client, image: &QuickImage) {
 /// The small image is no reference for the pose: enlarging and re-encoding blurs it, and the
 /// quick model answered one CI run's image 19° apart. Nor is any one answer: the quick model's two
 /// best hypotheses are often within 1% of each other's score, and the few-1/255 differences of
-/// the two reductions swap them (21° on one image in 16). So each answer must match one of the
-/// two best hypotheses on the full-size pixels, and the answers as a whole must agree closely.
+/// the two reductions swap them (21° on one image in 16). Nor does the refinement always stop at
+/// the same place: on another quick model one image's answer stayed at its grid pose, (120°, 0°,
+/// 0°) at score 0.375, where the full-size pixels refined it to (118°, 8°, 11°) at 0.386, 13.5°
+/// apart. So each answer must lie within 20° of one of the two best hypotheses on the full-size
+/// pixels (a wrong hypothesis or wrong coordinates land further), and the answers as a whole
+/// must agree closely.
 async fn a_large_jpeg_decodes_reduced(client: &Client, images: &[QuickImage]) {
     let mut angles = Vec::new();
     for image in images {
@@ -192,7 +196,27 @@ async fn a_large_jpeg_decodes_reduced(client: &Client, images: &[QuickImage]) {
             .iter()
             .map(|h| geodesic(pose, rotation([h.azimuth, h.elevation, h.theta])).to_degrees())
             .fold(f64::INFINITY, f64::min);
-        assert!(nearest < 10.0, "{nearest:.1}° from the best two hypotheses on the full-size pixels");
+        let show = |e: &PoseEstimate| {
+            e.hypotheses
+                .iter()
+                .map(|h| {
+                    format!(
+                        "({:.0}°, {:.0}°, {:.0}°) {:.4}",
+                        h.azimuth.to_degrees(),
+                        h.elevation.to_degrees(),
+                        h.theta.to_degrees(),
+                        h.score
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        assert!(
+            nearest < 20.0,
+            "{nearest:.1}° from the best two hypotheses on the full-size pixels\nreduced: {}\nfull-size: {}",
+            show(got),
+            show(want)
+        );
         angles.push(geodesic(pose, rotation([want.azimuth, want.elevation, want.theta])).to_degrees());
     }
     angles.sort_by(f64::total_cmp);
