@@ -52,7 +52,7 @@ TEST_TMP := $(UDAPOSE_CACHE)/run/tmp
 
 SERVE_ARGS ?= --models models
 
-.PHONY: serve test test-build build venv lite-weights assets assets-all category-models category-reports browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
+.PHONY: serve test test-build build clone-check venv lite-weights assets assets-all category-models category-reports browser quick-data quick-model bench bench-check bench-service bench-scale bench-bad-inputs doctor fmt lint clean-cache deploy-check image
 
 serve: build
 	$(BIN)/udapose-server $(SERVE_ARGS)
@@ -68,11 +68,24 @@ test: test-build assets browser $(CORRUPTIONS_STAMP) $(TORCHVISION_STAMP) $(LITE
 		cargo test $(CARGO_FLAGS) --workspace $(TEST_FEATURES)
 	rm -rf $(TEST_TMP)
 
-build: venv
+build: venv clone-check
 	cargo build $(CARGO_FLAGS) --workspace
 
-test-build: venv
+test-build: venv clone-check
 	cargo build $(CARGO_FLAGS) --workspace $(TEST_FEATURES)
+
+# Two clones share the cache's target dir. Cargo keeps a build whose sources are older than it,
+# even one made from the other clone, whose env!("CARGO_MANIFEST_DIR") then points there (a
+# test ran another clone's lab/scripts). When the clone changes, the workspace's own crates are
+# rebuilt; the dependencies stay.
+CLONE_STAMP := $(CARGO_TARGET_DIR)/.udapose-clone
+clone-check: venv
+	@if [ -d $(CARGO_TARGET_DIR)/release ] && [ "$$(cat $(CLONE_STAMP) 2>/dev/null)" != "$(CURDIR)" ]; then \
+		echo "$(CARGO_TARGET_DIR) was built from another clone: rebuilding udapose's crates"; \
+		cargo clean --release $$(cargo metadata --no-deps --format-version 1 \
+			| $(PYTHON) -c 'import json,sys; print(" ".join("-p " + p["name"] for p in json.load(sys.stdin)["packages"]))'); \
+	fi
+	@mkdir -p $(CARGO_TARGET_DIR) && echo "$(CURDIR)" > $(CLONE_STAMP)
 
 venv: $(TORCH_STAMP)
 
