@@ -16,7 +16,7 @@ import math
 import os
 import sys
 
-RIGHT = math.pi / 6
+RIGHT_DEG = 30.0  # Acc@pi/6: an error below pi/6, as eval counts it
 
 
 def load(path):
@@ -25,7 +25,7 @@ def load(path):
 
 
 def right(evaluation, domain):
-    return [e < math.degrees(RIGHT) for e in evaluation["domains"][domain]["errors_deg"]]
+    return [e < RIGHT_DEG for e in evaluation["domains"][domain]["errors_deg"]]
 
 
 def mcnemar(base, other):
@@ -41,13 +41,13 @@ def table(work, split, domain):
     names = [f[: -len(suffix)] for f in os.listdir(work) if f.endswith(suffix) and not f.startswith("source-")]
     names.sort(key=lambda n: os.path.getmtime(os.path.join(work, n + suffix)))
     source = load(os.path.join(work, f"source{suffix}"))
-    bn_name = "bn" if "bn" in names else None
-    base = right(load(os.path.join(work, f"bn{suffix}")), domain) if bn_name else right(source, domain)
+    has_bn = "bn" in names
+    base = right(load(os.path.join(work, f"bn{suffix}")) if has_bn else source, domain)
     d = source["domains"][domain]
     rows = [
         f"### `{domain}` ({d['n']} `{split}` images)",
         "",
-        f"| variant | Acc@π/6 | vs {'BN only' if bn_name else 'source'}: +/− (z) | rounds | "
+        f"| variant | Acc@π/6 | vs {'BN only' if has_bn else 'source'}: +/− (z) | rounds | "
         "backbone steps | s | false-positive share |",
         "|---|---:|---:|---:|---:|---:|---:|",
         f"| source | {d['acc_pi_6']:.3f} | | | | | {d.get('false_fired_share', float('nan')):.3f} |",
