@@ -268,3 +268,20 @@ fn bad_inputs_are_errors() {
     let bad = AdaptConfig { alpha: 1.5, ..config(0.8) };
     assert!(adapt::adapt(&source, &images(2), &bad, go).is_err());
 }
+
+#[test]
+fn the_flip_check_keeps_only_flip_consistent_pseudo_poses() {
+    let source = random_model("flip");
+    // τ = −1, ψ = 0 and no score quantile: every image would train but for the flip check.
+    let base = AdaptConfig { max_rounds: 1, min_fired_ratio: 0.0, drop_quantile: 0.0, ..config(-1.0) };
+    let run = |config: &AdaptConfig| adapt::adapt(&source, &images(8), config, &mut go).unwrap().rounds[0].clone();
+    let plain = run(&base);
+    assert_eq!((plain.images_trained, plain.flip_consistent), (8, None));
+    let checked = run(&AdaptConfig { flip_check: true, ..base.clone() });
+    let agreeing = checked.flip_consistent.expect("the flip check counts its images");
+    assert_eq!(checked.images_trained, agreeing, "{checked:?}");
+    assert!(agreeing < 8, "a random model's estimates cannot all mirror: {checked:?}");
+    if agreeing == 0 {
+        assert_eq!(checked.vertices_updated, 0.0, "no image may move a vertex: {checked:?}");
+    }
+}

@@ -66,6 +66,10 @@ pub struct Knobs {
     /// Whose fired matches move the vertex features: all k hypotheses' or the best one's.
     #[arg(long, value_enum)]
     vertex_matches: Option<VertexMatchesArg>,
+    /// Only images whose mirrored crop's estimate mirrors their pseudo-pose (flip-consistent)
+    /// move the vertex features and train the backbone.
+    #[arg(long)]
+    flip_check: bool,
     #[arg(long)]
     seed: Option<u64>,
 }
@@ -85,6 +89,7 @@ impl Knobs {
         c.positives = self.positives.map_or(c.positives, Positives::from);
         c.vertex_matches = self.vertex_matches.map_or(c.vertex_matches, VertexMatches::from);
         c.target_batchnorm &= !self.no_target_bn;
+        c.flip_check = self.flip_check;
         if let Some(t) = self.fixed_threshold {
             c.threshold = Threshold::Fixed(t);
         }

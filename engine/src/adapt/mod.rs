@@ -20,6 +20,7 @@ use crate::camera::{Camera, Pose};
 use crate::checkpoint::{Model, NeuralMesh};
 use crate::error::{EngineError, Result};
 use crate::estimator::{self, Features, PoseSolver, to_host};
+use crate::gate::{flip_consistent, mirror_crops};
 use crate::mesh::Mesh;
 use crate::metrics::rotation_error;
 use crate::raster::Rasterizer;
@@ -104,6 +105,11 @@ pub struct AdaptConfig {
     /// Whose fired matches the vertex update takes.
     #[serde(default)]
     pub vertex_matches: VertexMatches,
+    /// Only flip-consistent pseudo-poses teach: an image contributes matches and positives only
+    /// when its mirrored crop's estimate is the mirror of its own (the gate's label-free check,
+    /// [`crate::gate::flip_consistent`]), which costs a second backbone pass and solve per image.
+    #[serde(default)]
+    pub flip_check: bool,
     /// Images per vertex update (METHOD: at least 32).
     pub vertex_batch: usize,
     /// Also move the clutter vector towards the target's clutter features (same α).
@@ -144,6 +150,7 @@ impl Default for AdaptConfig {
             drop_quantile: 0.2,
             alpha: 0.9,
             vertex_matches: VertexMatches::All,
+            flip_check: false,
             vertex_batch: 32,
             update_clutter: false,
             update_backbone: true,
@@ -237,6 +244,9 @@ pub struct RoundReport {
     pub images_selected: usize,
     /// Images used by the backbone step (selected and above the score quantile).
     pub images_trained: usize,
+    /// With [`AdaptConfig::flip_check`]: images whose pseudo-pose is flip-consistent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flip_consistent: Option<usize>,
     /// Mean share of a trained image's visible vertices that are its positives ([`Positives`]).
     #[serde(default)]
     pub positive_share: f64,

@@ -8,6 +8,8 @@ pub(super) struct Solved {
     pub(super) pose: Pose,
     pub(super) score: f64,
     pub(super) hypotheses: Vec<Matches>,
+    /// Whether the mirrored crop agrees ([`AdaptConfig::flip_check`]; true without the check).
+    pub(super) agrees: bool,
 }
 
 /// The visible vertices at one pose, their feature cells, whether each fires and whether its
@@ -97,8 +99,8 @@ impl<'a> Run<'a> {
         let (mut calm, mut converged) = (0, false);
         let mut last = (Vec::new(), Vec::new());
         let source_fired = if config.target_batchnorm {
-            let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), 1, progress)?;
-            let solved = self.solve_batch(&features)?;
+            let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), false, 1, progress)?;
+            let solved = self.solve_batch(&features, None)?;
             self.target_batchnorm()?;
             Some(mean(&solved.iter().map(|s| s.hypotheses[0].ratio()).collect::<Vec<_>>()))
         } else {
@@ -106,9 +108,10 @@ impl<'a> Run<'a> {
         };
         for round in 1..=config.max_rounds {
             let started = Instant::now();
-            let features = self.features(self.n, round, progress)?;
-            let (before, updated) = self.vertex_update(&features, round, progress)?;
-            let solved = self.solve_all(&features, round, Phase::PseudoPoses, progress)?;
+            let features = self.features(self.n, false, round, progress)?;
+            let mirrors = if config.flip_check { Some(self.features(self.n, true, round, progress)?) } else { None };
+            let (before, updated) = self.vertex_update(&features, mirrors.as_deref(), round, progress)?;
+            let solved = self.solve_all(&features, mirrors.as_deref(), round, Phase::PseudoPoses, progress)?;
             let poses: Vec<Pose> = solved.iter().map(|s| s.pose).collect();
             let ratios: Vec<f64> = solved.iter().map(|s| s.hypotheses[0].ratio()).collect();
             let targets = self.backbone_targets(&solved);
@@ -121,6 +124,7 @@ impl<'a> Run<'a> {
                 vertices_updated: updated,
                 images_selected: solved.iter().filter(|s| self.selected(&s.hypotheses[0])).count(),
                 images_trained: targets.iter().filter(|t| t.is_some()).count(),
+                flip_consistent: config.flip_check.then(|| solved.iter().filter(|s| s.agrees).count()),
                 positive_share: positive_share(&solved, &targets),
                 pose_change_median_deg: change.as_ref().map(|c| quantile(c, 0.5)),
                 pose_change_p90_deg: change.as_ref().map(|c| quantile(c, 0.9)),
@@ -190,10 +194,12 @@ impl<'a> Run<'a> {
         })
     }
 
-    /// The current backbone's features of the first `n` images (eval mode), on the host.
+    /// The current backbone's features of the first `n` images (eval mode), on the host; of
+    /// their mirrored crops when `mirrored`.
     pub(super) fn features(
         &self,
         n: usize,
+        mirrored: bool,
         round: usize,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
     ) -> Result<Vec<Features>> {
@@ -201,6 +207,7 @@ impl<'a> Run<'a> {
         for start in (0..n).step_by(self.config.batch) {
             let len = self.config.batch.min(n - start);
             let batch = self.images.narrow(0, start as i64, len as i64).to_device(self.vs.device());
+            let batch = if mirrored { mirror_crops(&batch) } else { batch };
             out.extend(estimator::features(&self.backbone, &batch)?);
             step(progress, round, Phase::Features, out.len(), n)?;
         }
@@ -216,23 +223,25 @@ impl<'a> Run<'a> {
         Ok(())
     }
 
-    /// Render and compare on every image with the current `C`, and each hypothesis's matches.
+    /// Render and compare on every image with the current `C`, and each hypothesis's matches;
+    /// with `mirrors` (the mirrored crops' features), whether each image is flip-consistent.
     pub(super) fn solve_all(
         &self,
         features: &[Features],
+        mirrors: Option<&[Features]>,
         round: usize,
         phase: Phase,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
     ) -> Result<Vec<Solved>> {
         let mut out = Vec::with_capacity(features.len());
-        for chunk in features.chunks(self.config.vertex_batch) {
-            out.extend(self.solve_batch(chunk)?);
+        for range in ranges(features.len(), self.config.vertex_batch) {
+            out.extend(self.solve_batch(&features[range.clone()], mirrors.map(|m| &m[range]))?);
             step(progress, round, phase, out.len(), features.len())?;
         }
         Ok(out)
     }
 
-    pub(super) fn solve_batch(&self, features: &[Features]) -> Result<Vec<Solved>> {
+    pub(super) fn solve_batch(&self, features: &[Features], mirrors: Option<&[Features]>) -> Result<Vec<Solved>> {
         let solver = PoseSolver::from_host(
             self.mesh.clone(),
             self.c.clone(),
@@ -243,10 +252,15 @@ impl<'a> Run<'a> {
         )?;
         // Only host data crosses into the worker threads (tch tensors are not Sync).
         let (mesh, crop, config, tau, clutter) = (&self.mesh, &self.crop, self.config, &self.tau, &self.clutter);
-        features
-            .par_iter()
-            .map_init(Rasterizer::new, |raster, f| {
+        (0..features.len())
+            .into_par_iter()
+            .map_init(Rasterizer::new, |raster, i| {
+                let (f, mirror) = (&features[i], mirrors.map(|m| &m[i]));
                 let estimate = solver.solve(f)?;
+                let agrees = match mirror {
+                    Some(g) => flip_consistent(&estimate.pose, &solver.solve(g)?.pose),
+                    None => true,
+                };
                 let hypotheses = estimate
                     .hypotheses
                     .iter()
@@ -258,7 +272,7 @@ impl<'a> Run<'a> {
                         Ok(Matches { visible, fired, object })
                     })
                     .collect::<Result<Vec<_>>>()?;
-                Ok(Solved { pose: estimate.pose, score: estimate.score, hypotheses })
+                Ok(Solved { pose: estimate.pose, score: estimate.score, hypotheses, agrees })
             })
             .collect()
     }
@@ -274,7 +288,13 @@ impl<'a> Run<'a> {
     pub(super) fn contributions<'m>(&self, solved: &'m Solved) -> impl Iterator<Item = (i64, i64)> + 'm {
         let global = matches!(self.config.selection, Selection::Global(_));
         let best = global || self.config.vertex_matches == VertexMatches::Best;
-        let hypotheses = if best { &solved.hypotheses[..1] } else { &solved.hypotheses[..] };
+        // An image whose mirror disagrees (AdaptConfig::flip_check) contributes nothing.
+        let used = match (solved.agrees, best) {
+            (false, _) => 0,
+            (true, true) => 1,
+            (true, false) => solved.hypotheses.len(),
+        };
+        let hypotheses = &solved.hypotheses[..used];
         let keep: Vec<bool> = hypotheses.iter().map(|m| self.selected(m)).collect();
         hypotheses.iter().zip(keep).filter(|(_, k)| *k).flat_map(move |(m, _)| {
             m.visible
@@ -293,6 +313,7 @@ impl<'a> Run<'a> {
     pub(super) fn vertex_update(
         &mut self,
         features: &[Features],
+        mirrors: Option<&[Features]>,
         round: usize,
         progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
     ) -> Result<(f64, f64)> {
@@ -302,8 +323,9 @@ impl<'a> Run<'a> {
         // α per round, whatever the number of batches (AdaptConfig::alpha).
         let batches = features.len().div_ceil(self.config.vertex_batch).max(1);
         let alpha = (self.config.alpha as f32).powf(1.0 / batches as f32);
-        for (b, chunk) in features.chunks(self.config.vertex_batch).enumerate() {
-            let solved = self.solve_batch(chunk)?;
+        for range in ranges(features.len(), self.config.vertex_batch) {
+            let (chunk, end) = (&features[range.clone()], range.end);
+            let solved = self.solve_batch(chunk, mirrors.map(|m| &m[range]))?;
             ratios.extend(solved.iter().map(|s| s.hypotheses[0].ratio()));
             let mut sums = vec![0f32; r * d];
             let mut counts = vec![0usize; r];
@@ -334,13 +356,7 @@ impl<'a> Run<'a> {
                     normalise(row);
                 }
             }
-            step(
-                progress,
-                round,
-                Phase::VertexUpdate,
-                (b * self.config.vertex_batch + chunk.len()).min(self.n),
-                self.n,
-            )?;
+            step(progress, round, Phase::VertexUpdate, end, features.len())?;
         }
         Ok((mean(&ratios), touched.iter().filter(|&&t| t).count() as f64 / r as f64))
     }
@@ -356,7 +372,7 @@ impl<'a> Run<'a> {
             .iter()
             .map(|s| {
                 let best = &s.hypotheses[0];
-                if s.score < floor || !self.selected(best) {
+                if s.score < floor || !self.selected(best) || !s.agrees {
                     return None;
                 }
                 let mut v = best.visible.clone();
@@ -419,6 +435,11 @@ impl<'a> Run<'a> {
         }
         Ok((sum / steps.max(1) as f64, steps))
     }
+}
+
+/// `0..n` in consecutive ranges of `size`.
+fn ranges(n: usize, size: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    (0..n).step_by(size.max(1)).map(move |start| start..(start + size).min(n))
 }
 
 /// Mean over the trained images of their positives' share of their visible vertices.
