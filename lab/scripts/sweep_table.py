@@ -1,9 +1,10 @@
 #!/usr/bin/env python3
 """The Markdown table of an adapt_variants.sh run (e.g. issue 18's lr x rounds sweep).
 
-    lab/scripts/sweep_table.py WORK SPLIT DOMAIN...
+    lab/scripts/sweep_table.py [--base NAME] WORK SPLIT DOMAIN...
 
-Per domain and variant: Acc@pi/6 on SPLIT, the answers it changes against BN only (gained,
+Per domain and variant: Acc@pi/6 on SPLIT, the answers it changes against the base variant
+(`--base`, default `bn`, BN only; the source where WORK has no such variant; gained,
 lost and McNemar's z = (gained - lost) / sqrt(gained + lost), so that a difference of a few
 images reads as the noise it is), the EM rounds it ran (and whether the label-free stop rule
 ended it), its backbone steps, seconds, and the false-positive share of its fired matches at
@@ -35,19 +36,20 @@ def mcnemar(base, other):
     return gained, lost, z
 
 
-def table(work, split, domain):
+def table(work, split, domain, base_name="bn"):
     tag = domain.replace("/", "_")
     suffix = f"-{tag}-{split}.json"
     names = [f[: -len(suffix)] for f in os.listdir(work) if f.endswith(suffix) and not f.startswith("source-")]
     names.sort(key=lambda n: os.path.getmtime(os.path.join(work, n + suffix)))
     source = load(os.path.join(work, f"source{suffix}"))
-    has_bn = "bn" in names
-    base = right(load(os.path.join(work, f"bn{suffix}")) if has_bn else source, domain)
+    has_base = base_name in names
+    base = right(load(os.path.join(work, f"{base_name}{suffix}")) if has_base else source, domain)
+    label = ("BN only" if base_name == "bn" else f"`{base_name}`") if has_base else "source"
     d = source["domains"][domain]
     rows = [
         f"### `{domain}` ({d['n']} `{split}` images)",
         "",
-        f"| variant | Acc@π/6 | vs {'BN only' if has_bn else 'source'}: +/− (z) | rounds | "
+        f"| variant | Acc@π/6 | vs {label}: +/− (z) | rounds | "
         "backbone steps | s | false-positive share |",
         "|---|---:|---:|---:|---:|---:|---:|",
         f"| source | {d['acc_pi_6']:.3f} | | | | | {d.get('false_fired_share', float('nan')):.3f} |",
@@ -67,10 +69,14 @@ def table(work, split, domain):
 
 
 def main():
-    if len(sys.argv) < 4:
+    args = sys.argv[1:]
+    base = "bn"
+    if args[:1] == ["--base"] and len(args) > 1:
+        base, args = args[1], args[2:]
+    if len(args) < 3:
         sys.exit(__doc__)
-    work, split, domains = sys.argv[1], sys.argv[2], sys.argv[3:]
-    print("\n\n".join(table(work, split, d) for d in domains))
+    work, split, domains = args[0], args[1], args[2:]
+    print("\n\n".join(table(work, split, d, base) for d in domains))
 
 
 if __name__ == "__main__":
