@@ -160,7 +160,16 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
 
 #[test]
 fn a_job_on_images_of_no_car_is_not_activated() {
-    let server = server("adapt-reject");
+    // The target check is what stands between such images and the served model: the gate does
+    // not (with the check off, jobs on these images passed it on the shipped model and on each
+    // of four quick models: a model adapted to them grows more confident on them). So the test
+    // runs the shipped model, whose weights are the same on every machine: 0.0% of its visible
+    // vertices fire on these images against the check's 2%. Quick models, retrained every run,
+    // gave 0.6-2.2% here (and 0.3-1.8% on real fog), too close to 2% for a test that must hold.
+    let server = Server::config("adapt-reject")
+        .shipped_model()
+        .args(["--adapt-min-images", "100000", "--max-batch", "1"])
+        .start();
     let seed = active_version(&server);
     let dir = std::env::temp_dir().join(format!("udapose-not-cars-{}", std::process::id()));
     not_cars(&dir, 60);
@@ -168,24 +177,14 @@ fn a_job_on_images_of_no_car_is_not_activated() {
     assert!(acks.iter().all(|a| a["status"] == "ACCEPTED"), "{acks:?}");
     let id = start_job(&server);
     let j = wait_job(&server, &id, "finished", terminal);
-    // Two guards stand between such images and the served model: the target check at round 1
-    // (almost no vertex fires to the source model: REJECTED before any version is written) and
-    // the gate (a stronger model's score margin may still rise a little on such images, so the
-    // gate alone is not enough). On the quick model, retrained every run, the target check's
-    // share on these images has crossed its 0.02 in some runs (the gate then rejected the job);
-    // either guard must stop it, and nothing may be served but the seed.
-    let check = || server.log().lines().filter(|l| l.contains("target check")).collect::<Vec<_>>().join("\n");
-    assert_eq!(j["state"], "REJECTED", "{j}\n{}", check());
+    assert_eq!(j["state"], "REJECTED", "{j}\n{}", server.log());
     let reason = j["reason"].as_str().unwrap();
+    assert!(reason.contains("do not look like car") && reason.contains("nothing was saved"), "{reason}");
+    assert!(j["last_event"]["fired_ratio"].as_f64().unwrap() < 0.02, "{j}");
+    // Nothing written, nothing served but the seed.
     let (_, listed) = server.get("/v1/models/car/versions");
     let versions = serde_json::from_str::<Value>(&listed).unwrap()["versions"].as_array().unwrap().len();
-    if reason.contains("do not look like car") {
-        assert!(j["last_event"]["fired_ratio"].as_f64().unwrap() < 0.02, "{j}");
-        assert_eq!((j["version"].as_str(), versions), (Some(""), 1), "{j}\n{listed}");
-    } else {
-        assert!(reason.contains("gate kept"), "neither guard: {reason}\n{}", check());
-        eprintln!("the target check let the images through ({}); the gate rejected them: {reason}", check());
-    }
+    assert_eq!((j["version"].as_str(), versions), (Some(""), 1), "{j}\n{listed}");
     assert_eq!(active_version(&server), seed);
     let _ = fs::remove_dir_all(&dir);
 }

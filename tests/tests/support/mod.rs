@@ -33,8 +33,9 @@ pub struct Server {
 /// How to start a server.
 pub struct ServerConfig {
     name: String,
-    quick_model: bool,
-    /// More categories served with a copy of the quick model.
+    /// The model served as category `car`, if any.
+    model: Option<PathBuf>,
+    /// More categories served with a copy of that model.
     also_as: Vec<String>,
     args: Vec<String>,
     tls: bool,
@@ -63,11 +64,18 @@ impl ServerConfig {
 
     /// Serves the quick model (`UDAPOSE_QUICK_MODEL`) as category `car`.
     pub fn quick_model(mut self) -> Self {
-        self.quick_model = true;
+        self.model = Some(env_path("UDAPOSE_QUICK_MODEL"));
         self
     }
 
-    /// Also serves a copy of the quick model as `category` (its manifest says so), beside car.
+    /// Serves the shipped car model (`models/car` of the repository) as category `car`: fixed
+    /// weights, where a check's margin measured on it holds on every machine.
+    pub fn shipped_model(mut self) -> Self {
+        self.model = Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/car"));
+        self
+    }
+
+    /// Also serves a copy of the model as `category` (its manifest says so), beside car.
     pub fn quick_model_as(mut self, category: &str) -> Self {
         self.also_as.push(category.into());
         self
@@ -96,12 +104,11 @@ impl ServerConfig {
         let dir = scratch_dir(&self.name);
         let models = dir.join("models");
         fs::create_dir_all(&models).expect("creating the models directory");
-        if self.quick_model {
-            let quick = env_path("UDAPOSE_QUICK_MODEL");
+        if let Some(model) = &self.model {
             for category in std::iter::once("car").chain(self.also_as.iter().map(String::as_str)) {
                 let dir = models.join(category);
                 fs::create_dir(&dir).unwrap();
-                for f in fs::read_dir(&quick).expect("reading the quick model").map(|e| e.unwrap().path()) {
+                for f in fs::read_dir(model).expect("reading the model to serve").map(|e| e.unwrap().path()) {
                     fs::copy(&f, dir.join(f.file_name().unwrap())).unwrap();
                 }
                 let manifest = dir.join("manifest.json");
@@ -125,7 +132,7 @@ impl ServerConfig {
         let child = spawn(&command, &dir, &pairs(&env));
         let mut server = Server { child, command, dir, http_addr, grpc_addr, tls: self.tls, env };
         server.wait_for("/healthz");
-        if self.quick_model && self.wait_ready {
+        if self.model.is_some() && self.wait_ready {
             server.wait_for("/readyz");
         }
         server
@@ -155,7 +162,7 @@ impl Server {
     pub fn config(name: &str) -> ServerConfig {
         ServerConfig {
             name: name.into(),
-            quick_model: false,
+            model: None,
             also_as: Vec::new(),
             args: Vec::new(),
             tls: false,
