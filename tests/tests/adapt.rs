@@ -165,7 +165,8 @@ fn a_job_on_images_of_no_car_is_not_activated() {
     // of four quick models: a model adapted to them grows more confident on them). So the test
     // runs the shipped model, whose weights are the same on every machine: 0.0% of its visible
     // vertices fire on these images against the check's 2%. Quick models, retrained every run,
-    // gave 0.6-2.2% here (and 0.3-1.8% on real fog), too close to 2% for a test that must hold.
+    // gave 0.3-2.2% here (and 0.2-1.8% on real fog), too close to 2% for a test that must hold
+    // (reports/target-check.md).
     let server = Server::config("adapt-reject")
         .shipped_model()
         .args(["--adapt-min-images", "100000", "--max-batch", "1"])
