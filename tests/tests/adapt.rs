@@ -25,7 +25,7 @@ fn streamed_images_adapt_activate_and_roll_back_without_a_failed_request() {
     // car must change none of its answers.
     let server = Server::config("adapt-online")
         .quick_model()
-        .quick_model_as("bus")
+        .also_as("bus")
         .args(["--adapt-min-images", "100000", "--max-batch", "1", "--min-target-fired", "0"])
         .start();
     let test_images = quick_images("corrupt/fog", 60);

@@ -82,7 +82,7 @@ impl Drop for Driver {
 fn a_person_uploads_an_image_and_sees_the_angles_and_the_cuboid() {
     // Two categories: the page's selector offers each model the server has (the second is the
     // quick model again, under another category).
-    let server = Server::config("web").quick_model().quick_model_as("chair").start();
+    let server = Server::config("web").quick_model().also_as("chair").start();
     let image = quick_images("source", 1).remove(0);
     let expected = server.request("POST", "/v1/pose/car", &[], &image.bytes).json();
     let azimuth = expected["estimates"][0]["azimuth_deg"].as_f64().unwrap();

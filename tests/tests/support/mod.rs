@@ -76,7 +76,7 @@ impl ServerConfig {
     }
 
     /// Also serves a copy of the model as `category` (its manifest says so), beside car.
-    pub fn quick_model_as(mut self, category: &str) -> Self {
+    pub fn also_as(mut self, category: &str) -> Self {
         self.also_as.push(category.into());
         self
     }
