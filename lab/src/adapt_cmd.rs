@@ -27,7 +27,7 @@ pub struct Knobs {
     /// EMA weight α of the old vertex feature.
     #[arg(long)]
     alpha: Option<f64>,
-    /// ψ: minimum share of an image's visible vertices that must fire.
+    /// ψ: minimum share of an image's visible vertices that must fire (default 0.2).
     #[arg(long)]
     min_fired_ratio: Option<f64>,
     /// One cosine threshold for every vertex (default 0.8, the paper's value).
