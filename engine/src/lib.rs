@@ -14,6 +14,7 @@ pub mod metrics;
 pub mod raster;
 pub mod runtime;
 pub mod signature;
+mod snapshot;
 pub mod solver;
 pub mod train;
 

@@ -8,6 +8,9 @@ pub mod state;
 pub use schedule::{LearningRates, Schedule};
 pub use state::Progress;
 
+use std::collections::BTreeMap;
+use std::path::Path;
+
 use rand::Rng;
 use rand::seq::index::sample;
 use tch::{Device, Kind, Tensor, nn};
@@ -172,6 +175,44 @@ impl SourceTraining {
         tch::no_grad(|| training.clutter.narrow(0, 0, n).copy_(&clutter.narrow(0, 0, n)));
         (training.clutter_next, training.clutter_filled) = (n % training.clutter.size()[0], n);
         training
+    }
+
+    /// The memory banks as named tensors, for a [`crate::snapshot`]: `C`, the clutter bank and
+    /// where the bank's ring stands (`[next, filled]`), so that a resumed run draws the same
+    /// negatives.
+    pub(crate) fn banks(&self, prefix: &str) -> Vec<(String, Tensor)> {
+        vec![
+            (format!("{prefix}vertex_features"), self.vertex_features.shallow_clone()),
+            (format!("{prefix}clutter"), self.clutter.shallow_clone()),
+            (format!("{prefix}clutter_position"), Tensor::from_slice(&[self.clutter_next, self.clutter_filled])),
+        ]
+    }
+
+    /// Restores [`SourceTraining::banks`] read from the snapshot `dir`. A snapshot from before
+    /// the ring's position was saved counts the bank as full.
+    pub(crate) fn restore_banks(&mut self, dir: &Path, tensors: &BTreeMap<String, Tensor>, prefix: &str) -> Result<()> {
+        use crate::snapshot::{format_error, get};
+        let clutter = get(dir, tensors, &format!("{prefix}clutter"))?;
+        if clutter.size() != self.clutter.size() {
+            return Err(format_error(
+                dir,
+                format!("a clutter bank of {:?}, not {:?}", clutter.size(), self.clutter.size()),
+            ));
+        }
+        self.vertex_features = get(dir, tensors, &format!("{prefix}vertex_features"))?.copy();
+        tch::no_grad(|| self.clutter.copy_(clutter));
+        let m = self.clutter.size()[0];
+        (self.clutter_next, self.clutter_filled) = match tensors.get(&format!("{prefix}clutter_position")) {
+            Some(t) => {
+                let p = Vec::<i64>::try_from(t).map_err(|e| format_error(dir, e))?;
+                match p[..] {
+                    [next, filled] if (0..m).contains(&next) && (0..=m).contains(&filled) => (next, filled),
+                    _ => return Err(format_error(dir, format!("clutter bank position {p:?}"))),
+                }
+            }
+            None => (0, m),
+        };
+        Ok(())
     }
 
     /// One optimiser step on a batch of images (`N×3×H×W` in [0, 1]) at their ground-truth

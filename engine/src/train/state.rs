@@ -1,23 +1,17 @@
 //! A source-training run's state: the backbone's variables, the memory banks and the run's
 //! progress, under `<work>/epoch-<n>/` at the end of each epoch and `<work>/epoch-<n>-step-<m>/`
 //! within one (a slow machine's epoch can last an hour: the house keeps at most 15 minutes of
-//! work at risk), so a run resumes after any interruption. Each directory is built under a
-//! temporary name and renamed into place (a resumed run sees a whole checkpoint or none); the two
+//! work at risk), so a run resumes after any interruption. Each is a [`crate::snapshot`]; the two
 //! newest are kept.
 
-use std::collections::BTreeMap;
-use std::fs::{self, File};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 use tch::{Tensor, nn};
 
 use super::SourceTraining;
-use crate::error::{CheckpointError, EngineError, Result};
-
-const STATE: &str = "state.safetensors";
-const PROGRESS: &str = "progress.json";
+use crate::error::Result;
+use crate::snapshot::{self, format_error, get};
 
 /// What a run has done so far; saved with each checkpoint's weights.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -36,25 +30,17 @@ pub struct Progress {
     pub curve: Vec<serde_json::Value>,
 }
 
-fn state_error(dir: &Path, what: impl std::fmt::Display) -> EngineError {
-    CheckpointError::Format { path: dir.display().to_string(), reason: what.to_string() }.into()
-}
-
 /// Loads the latest checkpoint of `work` into `vs` and `training`; a run with none starts afresh.
 pub fn resume(work: &Path, vs: &mut nn::VarStore, training: &mut SourceTraining) -> Result<Progress> {
     let Some(dir) = latest_checkpoint(work)? else { return Ok(Progress::default()) };
-    let text = fs::read_to_string(dir.join(PROGRESS))?;
-    let progress: Progress = serde_json::from_str(&text).map_err(|e| state_error(&dir, e))?;
-    let tensors: BTreeMap<String, Tensor> = crate::checkpoint::read_tensors(&dir.join(STATE))?;
-    let get = |name: &str| tensors.get(name).ok_or_else(|| state_error(&dir, format!("no {name}")));
+    let (progress, tensors): (Progress, _) = snapshot::read(&dir)?;
     tch::no_grad(|| -> Result<()> {
         for (name, mut var) in vs.variables() {
-            var.f_copy_(get(&format!("backbone.{name}"))?).map_err(|e| state_error(&dir, e))?;
+            var.f_copy_(get(&dir, &tensors, &format!("backbone.{name}"))?).map_err(|e| format_error(&dir, e))?;
         }
-        training.vertex_features = get("vertex_features")?.shallow_clone();
-        training.clutter.f_copy_(get("clutter")?).map_err(|e| state_error(&dir, e))?;
         Ok(())
     })?;
+    training.restore_banks(&dir, &tensors, "")?;
     Ok(progress)
 }
 
@@ -76,57 +62,25 @@ fn parse_name(name: &str) -> Option<(usize, usize)> {
     }
 }
 
-/// The complete checkpoints in `work`, oldest first.
-fn checkpoints(work: &Path) -> Result<Vec<((usize, usize), PathBuf)>> {
-    if !work.is_dir() {
-        return Ok(Vec::new());
-    }
-    let mut found: Vec<((usize, usize), PathBuf)> = fs::read_dir(work)?
-        .filter_map(|e| e.ok())
-        .filter_map(|e| {
-            let at = parse_name(e.file_name().to_str()?)?;
-            e.path().join(PROGRESS).is_file().then(|| (at, e.path()))
-        })
-        .collect();
-    found.sort();
-    Ok(found)
-}
-
 /// The directory of the newest complete checkpoint in `work`.
 pub fn latest_checkpoint(work: &Path) -> Result<Option<PathBuf>> {
-    Ok(checkpoints(work)?.pop().map(|(_, p)| p))
+    Ok(snapshot::complete(work, parse_name)?.pop().map(|(_, p)| p))
 }
 
-/// Writes the checkpoint of `progress` (weights and banks, progress last) under a temporary
-/// name, renames it into place, and keeps the two newest.
+/// Writes the checkpoint of `progress` (weights and banks, progress last) and keeps the two
+/// newest.
 pub fn save(work: &Path, vs: &nn::VarStore, training: &SourceTraining, progress: &Progress) -> Result<()> {
-    fs::create_dir_all(work)?;
-    let name = dir_name(progress.epoch, progress.step);
-    let dir = work.join(&name);
-    let tmp = work.join(format!(".{name}.tmp"));
-    let _ = fs::remove_dir_all(&tmp);
-    fs::create_dir_all(&tmp)?;
     let mut tensors: Vec<(String, Tensor)> =
         vs.variables().into_iter().map(|(n, t)| (format!("backbone.{n}"), t)).collect();
-    tensors.push(("vertex_features".into(), training.vertex_features.shallow_clone()));
-    tensors.push(("clutter".into(), training.clutter.shallow_clone()));
-    Tensor::write_safetensors(&tensors, tmp.join(STATE)).map_err(|e| state_error(&tmp, e))?;
-    File::open(tmp.join(STATE))?.sync_all()?;
-    let mut f = File::create(tmp.join(PROGRESS))?;
-    f.write_all(serde_json::to_string(progress).map_err(|e| state_error(&tmp, e))?.as_bytes())?;
-    f.sync_all()?;
-    File::open(&tmp)?.sync_all()?;
-    let _ = fs::remove_dir_all(&dir);
-    fs::rename(&tmp, &dir)?;
-    File::open(work)?.sync_all()?;
-    for (_, p) in checkpoints(work)?.iter().rev().skip(2) {
-        fs::remove_dir_all(p)?;
-    }
-    Ok(())
+    tensors.extend(training.banks(""));
+    snapshot::write(work, &dir_name(progress.epoch, progress.step), &tensors, progress)?;
+    snapshot::prune(work, parse_name, 2)
 }
 
 #[cfg(test)]
 mod tests {
+    use std::fs;
+
     use super::*;
 
     #[test]
@@ -153,7 +107,7 @@ mod tests {
         ] {
             fs::create_dir_all(work.join(name)).unwrap();
             if complete {
-                fs::write(work.join(name).join(PROGRESS), "{}").unwrap();
+                fs::write(work.join(name).join("progress.json"), "{}").unwrap();
             }
         }
         assert_eq!(latest_checkpoint(&work).unwrap(), Some(work.join("epoch-0001-step-000050")));
