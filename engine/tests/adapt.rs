@@ -285,3 +285,77 @@ fn the_flip_check_keeps_only_flip_consistent_pseudo_poses() {
         assert_eq!(checked.vertices_updated, 0.0, "no image may move a vertex: {checked:?}");
     }
 }
+
+/// Rounds without their wall time, to compare two runs.
+fn timeless(rounds: &[adapt::RoundReport]) -> Vec<adapt::RoundReport> {
+    rounds.iter().map(|r| adapt::RoundReport { seconds: 0.0, ..r.clone() }).collect()
+}
+
+/// A run stopped after round 2 of 3 resumes from its snapshot with round 3 only, and ends where
+/// an uninterrupted run ends (round 3 trains no backbone, so Adam's restart cannot show);
+/// another run's snapshot is refused.
+#[test]
+fn an_interrupted_adaptation_resumes_where_it_stopped() {
+    let source = random_model("resume");
+    let scratch = support::Scratch::new("adapt-resume-work");
+    let work = scratch.path().join(".adapted.rounds");
+    let three = AdaptConfig { max_rounds: 3, patience: 5, ..config(-1.0) };
+    // One tensor for the three runs: `images` seeds torch's global generator, which the tests
+    // running beside this one draw from too.
+    let images = images(6);
+    let whole = adapt::adapt(&source, &images, &three, &mut go).unwrap();
+    assert_eq!(whole.resumed_after, None);
+
+    let stopped = adapt::adapt_resumable(&source, &images, &three, &work, &mut |e| match e {
+        Event::Round(r) if r.round == 2 => ControlFlow::Break(()),
+        _ => ControlFlow::Continue(()),
+    });
+    assert_eq!(stopped.err(), Some(EngineError::Cancelled));
+    let mut events = Vec::new();
+    let resumed = adapt::adapt_resumable(&source, &images, &three, &work, &mut |e| {
+        match e {
+            Event::Resumed { rounds } => events.push(format!("resumed {rounds}")),
+            Event::Round(r) => events.push(format!("round {}", r.round)),
+            Event::Step { round, .. } => assert_eq!(round, 3, "a restored round ran again"),
+        }
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_eq!(events, ["resumed 2", "round 3"]);
+    assert_eq!(resumed.resumed_after, Some(2));
+    assert_eq!(timeless(&resumed.rounds), timeless(&whole.rounds));
+    assert_eq!(resumed.backbone_steps, whole.backbone_steps);
+    assert!(same(&snapshot(&resumed.vs), &snapshot(&whole.vs)), "the backbone differs from an uninterrupted run's");
+    assert!(resumed.neural_mesh.vertex_features.equal(&whole.neural_mesh.vertex_features));
+    assert_eq!(resumed.pseudo_poses, whole.pseudo_poses);
+
+    let other = AdaptConfig { seed: 1, ..three };
+    let refused = adapt::adapt_resumable(&source, &images, &other, &work, &mut go);
+    assert!(matches!(refused, Err(EngineError::InvalidInput(m)) if m.contains("another run")));
+}
+
+/// The oracle resumes after its first pass and still takes exactly its budget.
+#[test]
+fn an_interrupted_oracle_resumes_with_its_budget() {
+    let source = random_model("oracle-resume");
+    let scratch = support::Scratch::new("oracle-resume-work");
+    let work = scratch.path().join(".oracle.rounds");
+    let images = images(5);
+    let run = |progress: &mut dyn FnMut(Event) -> ControlFlow<()>| {
+        adapt::finetune_resumable(&source, &images, &labels(5), Budget::Steps(5), &config(0.8), &work, progress)
+    };
+    let stopped =
+        run(&mut |e| if matches!(e, Event::Round(_)) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) });
+    assert_eq!(stopped.err(), Some(EngineError::Cancelled));
+    let mut resumed_at = None;
+    let tuned = run(&mut |e| {
+        if let Event::Resumed { rounds } = e {
+            resumed_at = Some(rounds);
+        }
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_eq!(resumed_at, Some(1));
+    assert_eq!((tuned.backbone_steps, tuned.rounds.len(), tuned.resumed_after), (5, 3, Some(1)));
+    assert!(!tuned.neural_mesh.vertex_features.equal(&source.neural_mesh.vertex_features), "C trains with labels");
+}

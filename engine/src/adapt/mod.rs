@@ -6,6 +6,7 @@
 //! ([`finetune`]), so the two share their budget by construction.
 
 use std::ops::ControlFlow;
+use std::path::Path;
 use std::time::Instant;
 
 use rand::SeedableRng;
@@ -28,10 +29,12 @@ use crate::solver::SolverConfig;
 use crate::train::{SourceTraining, TrainConfig, VisibleVertices, visible_vertices};
 
 mod fire;
+mod resume;
 mod run;
 
 pub use fire::FiringTest;
 use fire::*;
+use resume::Resume;
 use run::Run;
 
 /// Which per-vertex cosine a feature must exceed to *fire* (METHOD.md §7.3).
@@ -266,8 +269,17 @@ pub struct RoundReport {
 /// Progress of a run: phases within a round, and each finished round.
 #[derive(Clone, Debug)]
 pub enum Event<'a> {
-    Step { round: usize, phase: Phase, done: usize, total: usize },
+    Step {
+        round: usize,
+        phase: Phase,
+        done: usize,
+        total: usize,
+    },
     Round(&'a RoundReport),
+    /// The run goes on from a snapshot taken after this many rounds ([`adapt_resumable`]).
+    Resumed {
+        rounds: usize,
+    },
 }
 
 /// The adapted (or fine-tuned) model: a new backbone and neural mesh, and how it got there.
@@ -280,6 +292,8 @@ pub struct Adapted {
     pub converged: bool,
     /// Backbone optimiser steps taken (the budget the oracle matches).
     pub backbone_steps: usize,
+    /// Rounds (passes) restored from a snapshot, when the run was resumed.
+    pub resumed_after: Option<usize>,
     /// Per image, the pseudo-pose of the last round and its fired-vertex ratio.
     pub pseudo_poses: Vec<Option<Pose>>,
     pub fired_ratios: Vec<f64>,
@@ -294,7 +308,22 @@ pub fn adapt(
     config: &AdaptConfig,
     progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
 ) -> Result<Adapted> {
-    Run::new(source, images, config)?.em(progress)
+    Run::new(source, images, config)?.em(None, progress)
+}
+
+/// [`adapt`], snapshotted after each round into `work` and resumed from the newest snapshot
+/// there (see [`resume`](self) for what is kept); `work` is the caller's to remove once the
+/// model is saved.
+pub fn adapt_resumable(
+    source: &Model,
+    images: &Tensor,
+    config: &AdaptConfig,
+    work: &Path,
+    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+) -> Result<Adapted> {
+    let run = Run::new(source, images, config)?;
+    let resume = Resume::new(work, "adapt", source, images, config, &[])?;
+    run.em(Some(&resume), progress)
 }
 
 /// A labelled image of the oracle: its ground-truth pose and, where the data knows it, which
@@ -342,8 +371,33 @@ pub fn finetune(
     config: &AdaptConfig,
     progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
 ) -> Result<Adapted> {
+    finetune_in(source, images, labels, budget, config, None, progress)
+}
+
+/// [`finetune`], snapshotted after each pass into `work` and resumed from there, as
+/// [`adapt_resumable`].
+pub fn finetune_resumable(
+    source: &Model,
+    images: &Tensor,
+    labels: &[Label],
+    budget: Budget,
+    config: &AdaptConfig,
+    work: &Path,
+    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+) -> Result<Adapted> {
+    finetune_in(source, images, labels, budget, config, Some(work), progress)
+}
+
+fn finetune_in(
+    source: &Model,
+    images: &Tensor,
+    labels: &[Label],
+    budget: Budget,
+    config: &AdaptConfig,
+    work: Option<&Path>,
+    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+) -> Result<Adapted> {
     let mut run = Run::new(source, images, config)?;
-    run.target_batchnorm()?;
     if labels.len() != run.n {
         return Err(EngineError::InvalidInput(format!("{} poses for {} images", labels.len(), run.n)));
     }
@@ -352,6 +406,25 @@ pub fn finetune(
         let n = o.len();
         return Err(EngineError::InvalidInput(format!("an occluder mask of {n} pixels for a {height}×{width} crop")));
     }
+    let resume = work.map(|w| Resume::new(w, "oracle", source, images, config, labels)).transpose()?;
+    let mut training = run.training();
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let restored = match &resume {
+        Some(r) => run.restore(r, &mut rng, Some(&mut training))?,
+        None => None,
+    };
+    let mut state = match restored {
+        Some(state) => {
+            if progress(Event::Resumed { rounds: run.rounds.len() }).is_break() {
+                return Err(EngineError::Cancelled);
+            }
+            state
+        }
+        None => {
+            run.target_batchnorm()?;
+            Default::default()
+        }
+    };
     let targets: Vec<Option<VisibleVertices>> = labels
         .iter()
         .map(|label| {
@@ -362,15 +435,12 @@ pub fn finetune(
             }))
         })
         .collect::<Result<_>>()?;
-    let mut training = run.training();
-    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
     let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&run.vs, config.lr).map_err(tch_err)?;
-    let (mut steps, mut losses) = (0, Vec::new());
-    while !budget.done(steps, &losses) {
-        let round = losses.len() + 1;
+    while !budget.done(run.steps, &state.losses) {
+        let round = state.losses.len() + 1;
         let started = Instant::now();
         let left = match budget {
-            Budget::Steps(n) => n - steps,
+            Budget::Steps(n) => n - run.steps,
             Budget::Plateau { .. } => usize::MAX,
         };
         let (loss, taken) =
@@ -378,8 +448,8 @@ pub fn finetune(
         if taken == 0 {
             return Err(EngineError::InvalidInput("no labelled image shows a visible vertex".into()));
         }
-        steps += taken;
-        losses.push(loss);
+        run.steps += taken;
+        state.losses.push(loss);
         let report = RoundReport {
             round,
             backbone_loss: Some(loss),
@@ -387,13 +457,9 @@ pub fn finetune(
             seconds: started.elapsed().as_secs_f64(),
             ..Default::default()
         };
-        if progress(Event::Round(&report)).is_break() {
-            return Err(EngineError::Cancelled);
-        }
-        run.rounds.push(report);
+        run.end_round(report, resume.as_ref(), &rng, &state, Some(&training), progress)?;
     }
     run.c = to_host(&training.vertex_features)?;
     run.clutter = to_host(&estimator::clutter_mean(&training.clutter))?;
-    run.steps = steps;
     run.finish(false, vec![None; labels.len()], vec![0.0; labels.len()])
 }

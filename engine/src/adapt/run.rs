@@ -1,6 +1,7 @@
 //! One adaptation run: its state, the EM rounds, pseudo-poses, the selective vertex update and
 //! the backbone step.
 
+use super::resume::{Loop, Resume};
 use super::*;
 
 /// One image's best pose and the matches of each hypothesis.
@@ -47,6 +48,8 @@ pub(super) struct Run<'a> {
     pub(super) tau: Vec<f32>,
     pub(super) rounds: Vec<RoundReport>,
     pub(super) steps: usize,
+    /// The rounds restored from a snapshot ([`super::resume`]).
+    pub(super) resumed_after: Option<usize>,
 }
 
 impl<'a> Run<'a> {
@@ -82,11 +85,17 @@ impl<'a> Run<'a> {
             tau,
             rounds: Vec::new(),
             steps: 0,
+            resumed_after: None,
         })
     }
 
-    /// The EM loop (METHOD.md §7.1–7).
-    pub(super) fn em(mut self, progress: &mut dyn FnMut(Event) -> ControlFlow<()>) -> Result<Adapted> {
+    /// The EM loop (METHOD.md §7.1–7); with `resume`, from the newest snapshot there, and
+    /// snapshotted after each round.
+    pub(super) fn em(
+        mut self,
+        resume: Option<&Resume>,
+        progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+    ) -> Result<Adapted> {
         let config = self.config;
         if config.batchnorm_only() {
             self.target_batchnorm()?;
@@ -94,11 +103,17 @@ impl<'a> Run<'a> {
             return self.finish(false, vec![None; n], Vec::new());
         }
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
-        let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&self.vs, config.lr).map_err(tch_err)?;
-        let mut previous: Option<Vec<Pose>> = None;
-        let (mut calm, mut converged) = (0, false);
-        let mut last = (Vec::new(), Vec::new());
-        let source_fired = if config.target_batchnorm {
+        let restored = match resume {
+            Some(r) => self.restore(r, &mut rng, None)?,
+            None => None,
+        };
+        let resumed = restored.is_some();
+        let mut state = restored.unwrap_or_default();
+        if resumed && progress(Event::Resumed { rounds: self.rounds.len() }).is_break() {
+            return Err(EngineError::Cancelled);
+        }
+        // A resumed run's snapshot already has the target's BatchNorm statistics.
+        let source_fired = if config.target_batchnorm && !resumed {
             let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), false, 1, progress)?;
             let solved = self.solve_batch(&features, None)?;
             self.target_batchnorm()?;
@@ -106,7 +121,11 @@ impl<'a> Run<'a> {
         } else {
             None
         };
-        for round in 1..=config.max_rounds {
+        let mut opt = nn::Adam { wd: 1e-4, ..Default::default() }.build(&self.vs, config.lr).map_err(tch_err)?;
+        for round in self.rounds.len() + 1..=config.max_rounds {
+            if state.converged {
+                break;
+            }
             let started = Instant::now();
             let features = self.features(self.n, false, round, progress)?;
             let mirrors = if config.flip_check { Some(self.features(self.n, true, round, progress)?) } else { None };
@@ -115,7 +134,7 @@ impl<'a> Run<'a> {
             let poses: Vec<Pose> = solved.iter().map(|s| s.pose).collect();
             let ratios: Vec<f64> = solved.iter().map(|s| s.hypotheses[0].ratio()).collect();
             let targets = self.backbone_targets(&solved);
-            let change = previous.as_ref().map(|p| pose_changes(p, &poses));
+            let change = state.previous.as_ref().map(|p| pose_changes(p, &poses));
             let mut report = RoundReport {
                 round,
                 source_fired_ratio: source_fired.filter(|_| round == 1),
@@ -133,11 +152,11 @@ impl<'a> Run<'a> {
             };
             let gain = report.fired_ratio - self.rounds.last().map_or(f64::NEG_INFINITY, |r| r.fired_ratio);
             let still = report.pose_change_median_deg.is_some_and(|c| c < config.pose_change_deg);
-            calm = if gain < config.fired_gain && still { calm + 1 } else { 0 };
-            converged = calm >= config.patience;
-            previous = Some(poses.clone());
-            last = (poses.into_iter().map(Some).collect(), ratios);
-            if config.update_backbone && !converged && round < config.max_rounds {
+            state.calm = if gain < config.fired_gain && still { state.calm + 1 } else { 0 };
+            state.converged = state.calm >= config.patience;
+            state.previous = Some(poses.clone());
+            (state.poses, state.ratios) = (poses.into_iter().map(Some).collect(), ratios);
+            if config.update_backbone && !state.converged && round < config.max_rounds {
                 let mut training = self.training();
                 let (loss, steps) = self.backbone_pass(
                     &mut training,
@@ -153,15 +172,29 @@ impl<'a> Run<'a> {
                 self.steps += steps;
             }
             report.seconds = started.elapsed().as_secs_f64();
-            if progress(Event::Round(&report)).is_break() {
-                return Err(EngineError::Cancelled);
-            }
-            self.rounds.push(report);
-            if converged {
-                break;
-            }
+            self.end_round(report, resume, &rng, &state, None, progress)?;
         }
-        self.finish(converged, last.0, last.1)
+        self.finish(state.converged, state.poses, state.ratios)
+    }
+
+    /// Records a finished round, snapshots the run (with `resume`) and reports the round.
+    pub(super) fn end_round(
+        &mut self,
+        report: RoundReport,
+        resume: Option<&Resume>,
+        rng: &ChaCha8Rng,
+        state: &Loop,
+        banks: Option<&SourceTraining>,
+        progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+    ) -> Result<()> {
+        self.rounds.push(report.clone());
+        if let Some(r) = resume {
+            self.save(r, rng, state, banks)?;
+        }
+        if progress(Event::Round(&report)).is_break() {
+            return Err(EngineError::Cancelled);
+        }
+        Ok(())
     }
 
     pub(super) fn finish(
@@ -189,6 +222,7 @@ impl<'a> Run<'a> {
             rounds: self.rounds,
             converged,
             backbone_steps: self.steps,
+            resumed_after: self.resumed_after,
             pseudo_poses,
             fired_ratios,
         })
