@@ -145,7 +145,8 @@ pub struct AdaptArgs {
     /// else is read, so no annotation can leak in.
     #[arg(long)]
     images: PathBuf,
-    /// The new model directory (must not exist).
+    /// The new model directory (must not exist). Each round is snapshotted beside it, in
+    /// `.<name>.rounds/`: the same command rerun after an interruption resumes there.
     #[arg(long)]
     out: PathBuf,
     /// Version name of the new model (default: the name of `--out`).
@@ -163,7 +164,8 @@ pub struct FinetuneArgs {
     /// A labelled split directory, e.g. data/syncar-ood-standard/combined/adapt.
     #[arg(long)]
     data: PathBuf,
-    /// The new model directory (must not exist).
+    /// The new model directory (must not exist). Each round is snapshotted beside it, in
+    /// `.<name>.rounds/`: the same command rerun after an interruption resumes there.
     #[arg(long)]
     out: PathBuf,
     /// Backbone optimiser steps (the budget).
@@ -234,7 +236,8 @@ pub fn adapt_folder(
         eprintln!("α = 1 and no backbone step: the target's BatchNorm statistics alone (AdaBN), no EM round");
     }
     let started = Instant::now();
-    let adapted = adapt::adapt(&source, &images, config, &mut reporter(config.max_rounds))?;
+    let work = rounds_dir(out)?;
+    let adapted = adapt::adapt_resumable(&source, &images, config, &work, &mut reporter(config.max_rounds, &work))?;
     let seconds = started.elapsed().as_secs_f64();
     let summary = json!({
         "kind": "3duda",
@@ -244,10 +247,12 @@ pub fn adapt_folder(
         "rounds": adapted.rounds,
         "converged": adapted.converged,
         "backbone_steps": adapted.backbone_steps,
+        "resumed_after": adapted.resumed_after,
         "fired_ratio_before": adapted.rounds.first().map(|r| r.fired_ratio_before),
         "fired_ratio_after": adapted.rounds.last().map(|r| r.fired_ratio),
     });
     save(&source, adapted, out, version, config, summary.clone())?;
+    std::fs::remove_dir_all(&work).with_context(|| format!("removing {}", work.display()))?;
     eprintln!("saved {} after {seconds:.0} s", out.display());
     Ok(summary)
 }
@@ -288,7 +293,8 @@ pub fn finetune_split(
         labels.len()
     );
     let started = Instant::now();
-    let tuned = adapt::finetune(&source, &images, &labels, budget, config, &mut reporter(0))?;
+    let work = rounds_dir(out)?;
+    let tuned = adapt::finetune_resumable(&source, &images, &labels, budget, config, &work, &mut reporter(0, &work))?;
     let seconds = started.elapsed().as_secs_f64();
     let summary = json!({
         "kind": "oracle",
@@ -302,9 +308,11 @@ pub fn finetune_split(
         },
         "seconds": seconds,
         "backbone_steps": tuned.backbone_steps,
+        "resumed_after": tuned.resumed_after,
         "rounds": tuned.rounds,
     });
     save(&source, tuned, out, version, config, summary.clone())?;
+    std::fs::remove_dir_all(&work).with_context(|| format!("removing {}", work.display()))?;
     eprintln!("saved {} after {seconds:.0} s", out.display());
     Ok(summary)
 }
@@ -326,6 +334,14 @@ fn open_split_dir(dir: &Path) -> Result<SyncarSplit> {
     parts.reverse();
     let split = parts.pop().unwrap_or_default();
     SyncarSplit::open(&root, &parts.join("/"), &split).with_context(|| format!("opening {}", dir.display()))
+}
+
+/// Where a run writes `out` keeps its snapshot after each round: `<out's folder>/.<name>.rounds`,
+/// beside the model and hidden, so that the same command rerun after an interruption resumes
+/// there (a round can take ten minutes on a CPU) and a listing of models does not see it.
+fn rounds_dir(out: &Path) -> Result<PathBuf> {
+    let name = out.file_name().and_then(|n| n.to_str()).context("--out has no file name")?;
+    Ok(out.with_file_name(format!(".{name}.rounds")))
 }
 
 fn refuse_existing(out: &Path) -> Result<()> {
@@ -374,7 +390,8 @@ fn save(
 }
 
 /// A progress bar per phase and one log line per round.
-fn reporter(max_rounds: usize) -> impl FnMut(Event) -> ControlFlow<()> {
+fn reporter(max_rounds: usize, work: &Path) -> impl FnMut(Event) -> ControlFlow<()> {
+    let work = work.display().to_string();
     let style = ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {elapsed} eta {eta}")
         .expect("valid template")
         .progress_chars("=> ");
@@ -403,6 +420,9 @@ fn reporter(max_rounds: usize) -> impl FnMut(Event) -> ControlFlow<()> {
                     b.finish_and_clear();
                 }
                 eprintln!("round {}: {}", r.round, serde_json::to_string(r).unwrap_or_default());
+            }
+            Event::Resumed { rounds } => {
+                eprintln!("resuming after round {rounds} from {work} (Adam's moments restart: tch cannot save them)")
             }
         }
         ControlFlow::Continue(())

@@ -106,6 +106,12 @@ fn quick_report_adapts_combined_without_collapsing() {
     // than the source: the paired 95% interval of adapted − source reaches 0. A collapse (α 0.5
     // on fog: −0.19; τ_r on quick: −0.15, reports/adapt-defaults.md) lies wholly below it.
     let manifest = read(&work.join("adapted/combined/manifest.json"));
+    // Each round was snapshotted beside the model (to resume an interrupted stage), and the
+    // snapshots went once the model was saved.
+    for v in ["adapted", "oracle", "strong_oracle"] {
+        assert!(!work.join(v).join(".combined.rounds").exists(), "{v}: round snapshots left behind");
+    }
+    assert!(manifest["training"]["run"]["resumed_after"].is_null());
     let run = &manifest["training"]["run"];
     let (first, last) = (run["fired_ratio_before"].as_f64().unwrap(), run["fired_ratio_after"].as_f64().unwrap());
     assert!(last > first, "fired ratio {first:.3} → {last:.3}");
