@@ -238,7 +238,7 @@ pub fn adapt_folder(
     let started = Instant::now();
     let work = rounds_dir(out)?;
     let adapted = adapt::adapt_resumable(&source, &images, config, &work, &mut reporter(config.max_rounds, &work))?;
-    let seconds = started.elapsed().as_secs_f64();
+    let seconds = started.elapsed().as_secs_f64() + restored_seconds(&adapted);
     let summary = json!({
         "kind": "3duda",
         "images": dir.display().to_string(),
@@ -295,7 +295,7 @@ pub fn finetune_split(
     let started = Instant::now();
     let work = rounds_dir(out)?;
     let tuned = adapt::finetune_resumable(&source, &images, &labels, budget, config, &work, &mut reporter(0, &work))?;
-    let seconds = started.elapsed().as_secs_f64();
+    let seconds = started.elapsed().as_secs_f64() + restored_seconds(&tuned);
     let summary = json!({
         "kind": "oracle",
         "data": split_dir.display().to_string(),
@@ -334,6 +334,12 @@ fn open_split_dir(dir: &Path) -> Result<SyncarSplit> {
     parts.reverse();
     let split = parts.pop().unwrap_or_default();
     SyncarSplit::open(&root, &parts.join("/"), &split).with_context(|| format!("opening {}", dir.display()))
+}
+
+/// The seconds of the rounds a resumed run restored, so that a run's `seconds` counts all its
+/// sessions (the report's stage times read them).
+fn restored_seconds(run: &Adapted) -> f64 {
+    run.rounds.iter().take(run.resumed_after.unwrap_or(0)).map(|r| r.seconds).sum()
 }
 
 /// Where a run writes `out` keeps its snapshot after each round: `<out's folder>/.<name>.rounds`,

@@ -307,7 +307,8 @@ impl Report<'_> {
         if !status.success() {
             bail!("stage {name} failed ({status})");
         }
-        self.timings.insert(name.to_string(), started.elapsed().as_secs_f64());
+        let seconds = resumed_seconds(output).unwrap_or_else(|| started.elapsed().as_secs_f64());
+        self.timings.insert(name.to_string(), seconds);
         let json = serde_json::to_string_pretty(&self.timings)? + "\n";
         udapose_lab::atomic::write_atomic(&self.work.join("timings.json"), json.as_bytes())?;
         Ok(())
@@ -533,4 +534,13 @@ fn read_evaluation(file: &Path, domain: &str) -> Option<Value> {
 
 fn slug(domain: &str) -> String {
     domain.replace('/', "-")
+}
+
+/// A model stage resumed from its round snapshots ran over several processes: its manifest's
+/// `training.run.seconds` counts them all, where the last process's wall time would not.
+fn resumed_seconds(model: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(model.join(udapose_engine::checkpoint::MANIFEST)).ok()?;
+    let run = serde_json::from_str::<Value>(&text).ok()?["training"]["run"].take();
+    run["resumed_after"].as_u64()?;
+    run["seconds"].as_f64()
 }
