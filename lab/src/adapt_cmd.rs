@@ -252,7 +252,7 @@ pub fn adapt_folder(
         "fired_ratio_after": adapted.rounds.last().map(|r| r.fired_ratio),
     });
     save(&source, adapted, out, version, config, summary.clone())?;
-    std::fs::remove_dir_all(&work).with_context(|| format!("removing {}", work.display()))?;
+    remove_rounds(&work)?;
     eprintln!("saved {} after {seconds:.0} s", out.display());
     Ok(summary)
 }
@@ -312,7 +312,7 @@ pub fn finetune_split(
         "rounds": tuned.rounds,
     });
     save(&source, tuned, out, version, config, summary.clone())?;
-    std::fs::remove_dir_all(&work).with_context(|| format!("removing {}", work.display()))?;
+    remove_rounds(&work)?;
     eprintln!("saved {} after {seconds:.0} s", out.display());
     Ok(summary)
 }
@@ -348,6 +348,16 @@ fn restored_seconds(run: &Adapted) -> f64 {
 fn rounds_dir(out: &Path) -> Result<PathBuf> {
     let name = out.file_name().and_then(|n| n.to_str()).context("--out has no file name")?;
     Ok(out.with_file_name(format!(".{name}.rounds")))
+}
+
+/// Removes a finished run's round snapshots (a BN-only run, which has no round, leaves none).
+fn remove_rounds(work: &Path) -> Result<()> {
+    match std::fs::remove_dir_all(work) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(e).with_context(|| format!("removing {}", work.display()))
+        }
+        _ => Ok(()),
+    }
 }
 
 fn refuse_existing(out: &Path) -> Result<()> {
