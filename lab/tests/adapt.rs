@@ -112,6 +112,7 @@ fn quick_report_adapts_combined_without_collapsing() {
         assert!(!work.join(v).join(".combined.rounds").exists(), "{v}: round snapshots left behind");
     }
     assert!(manifest["training"]["run"]["resumed_after"].is_null());
+    assert_eq!(report["resumed_stages"], serde_json::json!({}), "no stage was interrupted");
     let run = &manifest["training"]["run"];
     let (first, last) = (run["fired_ratio_before"].as_f64().unwrap(), run["fired_ratio_after"].as_f64().unwrap());
     assert!(last > first, "fired ratio {first:.3} → {last:.3}");

@@ -15,6 +15,7 @@ use udapose_lab::datasets::syncar::SplitPaths;
 
 use crate::plot;
 
+mod resumed;
 mod seeds;
 mod stats;
 
@@ -307,7 +308,7 @@ impl Report<'_> {
         if !status.success() {
             bail!("stage {name} failed ({status})");
         }
-        let seconds = resumed_seconds(output).unwrap_or_else(|| started.elapsed().as_secs_f64());
+        let seconds = resumed::seconds(output).unwrap_or_else(|| started.elapsed().as_secs_f64());
         self.timings.insert(name.to_string(), seconds);
         let json = serde_json::to_string_pretty(&self.timings)? + "\n";
         udapose_lab::atomic::write_atomic(&self.work.join("timings.json"), json.as_bytes())?;
@@ -410,6 +411,8 @@ impl Report<'_> {
             md.push_str(&row);
             out.insert(domain.clone(), entry);
         }
+        let resumed = resumed::stages(&self.work);
+        md.push_str(&resumed::markdown(&resumed));
         md.push_str(&self.acceptance(&out));
         md.push_str(&seeds::table(&out));
         if let (Some(s), Some(a)) =
@@ -426,6 +429,7 @@ impl Report<'_> {
             "data": self.data.display().to_string(),
             "domains": out,
             "stage_seconds": self.timings,
+            "resumed_stages": resumed,
         });
         udapose_lab::atomic::write_atomic(&self.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
         udapose_lab::atomic::write_atomic(&self.out.with_extension("md"), md.as_bytes())?;
@@ -534,13 +538,4 @@ fn read_evaluation(file: &Path, domain: &str) -> Option<Value> {
 
 fn slug(domain: &str) -> String {
     domain.replace('/', "-")
-}
-
-/// A model stage resumed from its round snapshots ran over several processes: its manifest's
-/// `training.run.seconds` counts them all, where the last process's wall time would not.
-fn resumed_seconds(model: &Path) -> Option<f64> {
-    let text = std::fs::read_to_string(model.join(udapose_engine::checkpoint::MANIFEST)).ok()?;
-    let run = serde_json::from_str::<Value>(&text).ok()?["training"]["run"].take();
-    run["resumed_after"].as_u64()?;
-    run["seconds"].as_f64()
 }
