@@ -312,8 +312,9 @@ pub fn adapt(
 }
 
 /// [`adapt`], snapshotted after each round into `work` and resumed from the newest snapshot
-/// there (see [`resume`](self) for what is kept); `work` is the caller's to remove once the
-/// model is saved.
+/// there: the backbone, `C`, the clutter, the rounds, the loop's state and the generator's
+/// position, not Adam's moments (tch cannot read them out; [`Adapted::resumed_after`] says the
+/// run was resumed). `work` is the caller's to remove once the model is saved.
 pub fn adapt_resumable(
     source: &Model,
     images: &Tensor,
