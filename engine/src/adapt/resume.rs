@@ -63,12 +63,12 @@ impl<'p> Resume<'p> {
 /// The loop's own state between rounds.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub(super) struct Loop {
-    /// The EM's pseudo-poses of the previous round, its calm rounds in a row, whether it
-    /// converged, and the last round's poses and fired ratios (the result's).
-    pub(super) previous: Option<Vec<Pose>>,
+    /// The EM's calm rounds in a row, whether it converged, and the last round's pseudo-poses
+    /// (empty before the first; the next round measures its pose change against them) and
+    /// fired ratios (the result's).
     pub(super) calm: usize,
     pub(super) converged: bool,
-    pub(super) poses: Vec<Option<Pose>>,
+    pub(super) poses: Vec<Pose>,
     pub(super) ratios: Vec<f64>,
     /// The oracle's mean loss per pass.
     pub(super) losses: Vec<f64>,

@@ -134,7 +134,7 @@ impl<'a> Run<'a> {
             let poses: Vec<Pose> = solved.iter().map(|s| s.pose).collect();
             let ratios: Vec<f64> = solved.iter().map(|s| s.hypotheses[0].ratio()).collect();
             let targets = self.backbone_targets(&solved);
-            let change = state.previous.as_ref().map(|p| pose_changes(p, &poses));
+            let change = (!state.poses.is_empty()).then(|| pose_changes(&state.poses, &poses));
             let mut report = RoundReport {
                 round,
                 source_fired_ratio: source_fired.filter(|_| round == 1),
@@ -154,8 +154,7 @@ impl<'a> Run<'a> {
             let still = report.pose_change_median_deg.is_some_and(|c| c < config.pose_change_deg);
             state.calm = if gain < config.fired_gain && still { state.calm + 1 } else { 0 };
             state.converged = state.calm >= config.patience;
-            state.previous = Some(poses.clone());
-            (state.poses, state.ratios) = (poses.into_iter().map(Some).collect(), ratios);
+            (state.poses, state.ratios) = (poses, ratios);
             if config.update_backbone && !state.converged && round < config.max_rounds {
                 let mut training = self.training();
                 let (loss, steps) = self.backbone_pass(
@@ -174,7 +173,7 @@ impl<'a> Run<'a> {
             report.seconds = started.elapsed().as_secs_f64();
             self.end_round(report, resume, &rng, &state, None, progress)?;
         }
-        self.finish(state.converged, state.poses, state.ratios)
+        self.finish(state.converged, state.poses.into_iter().map(Some).collect(), state.ratios)
     }
 
     /// Records a finished round, snapshots the run (with `resume`) and reports the round.
