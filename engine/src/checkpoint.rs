@@ -59,6 +59,12 @@ pub struct Manifest {
     /// gate"). Empty for a plain model.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub experts: Vec<Expert>,
+    /// The target check's threshold measured for this model (`udapose-lab target-check --set`,
+    /// reports/target-check.md): halfway between what images of no object read and what the
+    /// lowest of its benchmark's domains reads. Adapted versions inherit it. Absent: the gate's
+    /// default ([`crate::gate::GateConfig::min_target_fired`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_target_fired: Option<f64>,
 }
 
 /// A version that answers the images its domain takes ([`Domain::accepts`]).

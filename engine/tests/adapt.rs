@@ -269,6 +269,20 @@ fn fired_matches_are_false_only_away_from_the_true_pose() {
     assert!(fired > 10 && wrong * 2 > fired, "turned around: only {wrong} of {fired} false");
 }
 
+/// The target check's reading alone is round 1's `source_fired_ratio`, bit for bit.
+#[test]
+fn the_source_check_reads_what_round_one_reports() {
+    let source = random_model("source-check");
+    let one = AdaptConfig { max_rounds: 1, ..config(0.0) };
+    let images = images(6);
+    let each = adapt::source_fired(&source, &images, &one, &mut go).unwrap();
+    assert_eq!(each.len(), 6);
+    let alone = each.iter().sum::<f64>() / 6.0;
+    let round = adapt::adapt(&source, &images, &one, &mut go).unwrap().rounds[0].clone();
+    assert_eq!(Some(alone), round.source_fired_ratio);
+    assert!(alone > 0.0 && alone < 1.0, "τ = 0 fires some vertices of a random model, not all: {alone}");
+}
+
 #[test]
 fn bad_inputs_are_errors() {
     let source = random_model("bad");

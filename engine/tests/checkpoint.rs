@@ -30,6 +30,7 @@ fn manifest(dtype: &str) -> Manifest {
         metrics: serde_json::Value::Null,
         files: Default::default(),
         experts: Vec::new(),
+        min_target_fired: None,
     }
 }
 

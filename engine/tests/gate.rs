@@ -11,6 +11,7 @@ use std::path::PathBuf;
 
 use sha2::{Digest, Sha256};
 use tch::{Device, Kind, Tensor};
+use udapose_engine::adapt::RoundReport;
 use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::error::EngineError;
 use udapose_engine::gate::{
@@ -352,15 +353,31 @@ fn config_defaults_and_serde() {
     assert_eq!((c.flip_se, c.entropy_drop, c.entropy_floor, c.min_images), (2.0, 0.25, 1.0, 4));
     assert_eq!(c.solver, SolverConfig::default());
     let back: GateConfig = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
-    // (serde_json's float parsing may round the grid's last digit.)
-    assert_eq!(GateConfig { solver: c.solver.clone(), ..back.clone() }, c);
-    assert!(back.solver.azimuths.iter().zip(&c.solver.azimuths).all(|(a, b)| (a - b).abs() < 1e-15));
+    assert_eq!(back, c, "exact: the workspace parses floats with float_roundtrip");
     // Missing fields take their defaults.
     let partial: GateConfig = serde_json::from_str(r#"{"margin_gain": 0.5, "min_images": 10}"#).unwrap();
     assert_eq!(partial, GateConfig { margin_gain: 0.5, min_images: 10, ..GateConfig::default() });
     let d = decide(&healthy(8), &healthy(8), &GateConfig { margin_gain: 0.0, ..c }).unwrap();
     let back: Decision = serde_json::from_str(&serde_json::to_string(&d).unwrap()).unwrap();
     assert_eq!(back, d);
+}
+
+/// The target check's threshold: the operator's for every model, else the model's own
+/// (measured by `udapose-lab target-check`), else the default; round 1 alone is judged.
+#[test]
+fn the_target_threshold_is_the_operators_then_the_models_then_the_default() {
+    let mut model = support::random_model(1, [64, 160], "target").manifest;
+    let config = GateConfig::default();
+    assert_eq!(config.min_target_fired_for(&model), gate::DEFAULT_MIN_TARGET_FIRED);
+    model.min_target_fired = Some(0.1);
+    assert_eq!(config.min_target_fired_for(&model), 0.1);
+    let operator = GateConfig { min_target_fired: Some(0.05), ..config.clone() };
+    assert_eq!(operator.min_target_fired_for(&model), 0.05);
+    let round = |round, fired| RoundReport { round, source_fired_ratio: Some(fired), ..Default::default() };
+    assert_eq!(config.target_mismatch(&round(1, 0.08), &model), Some(0.08), "below the model's 0.1");
+    assert_eq!(operator.target_mismatch(&round(1, 0.08), &model), None, "above the operator's 0.05");
+    assert_eq!(config.target_mismatch(&round(2, 0.0), &model), None, "later rounds are not judged");
+    assert!(GateConfig { min_target_fired: Some(1.5), ..config }.validate().is_err());
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -85,10 +85,11 @@ struct Args {
     max_experts: usize,
     /// The target check: the share of visible vertices that must fire to the active model on a
     /// job's images at its first round, else the job is REJECTED as "not this category" before
-    /// any training (0 turns it off). Lower it for a domain far from the source (measured
-    /// shares: data/report-standard.log; see GateConfig::min_target_fired).
-    #[arg(long, value_name = "SHARE", default_value_t = GateConfig::default().min_target_fired)]
-    min_target_fired: f64,
+    /// any training (0 turns it off). Default: each model's own, measured for it (its
+    /// manifest's min_target_fired), else 0.02; set, it holds for every category. Lower it for
+    /// a domain far from the source (measured shares: reports/target-check.md).
+    #[arg(long, value_name = "SHARE")]
+    min_target_fired: Option<f64>,
     /// How much the median score margin on a job's held-out images must rise for the gate to
     /// pass it (negative: how much it may fall; see GateConfig::margin_gain for the default).
     #[arg(long, default_value_t = GateConfig::default().margin_gain, allow_negative_numbers = true)]

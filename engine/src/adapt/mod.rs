@@ -311,6 +311,20 @@ pub fn adapt(
     Run::new(source, images, config)?.em(None, progress)
 }
 
+/// What the service's target check reads before a job adapts
+/// ([`crate::gate::GateConfig::min_target_fired`]): the share of visible vertices that fire on
+/// each of up to [`SOURCE_CHECK_IMAGES`] of `images` to `source` as it is. Their mean is the
+/// round-1 [`RoundReport::source_fired_ratio`] of [`adapt`] on the same images and settings,
+/// without the round. `config` gives the threshold τ and the solver.
+pub fn source_fired(
+    source: &Model,
+    images: &Tensor,
+    config: &AdaptConfig,
+    progress: &mut dyn FnMut(Event) -> ControlFlow<()>,
+) -> Result<Vec<f64>> {
+    Run::new(source, images, config)?.source_fired(progress)
+}
+
 /// [`adapt`], snapshotted after each round into `work` and resumed from the newest snapshot
 /// there: the backbone, `C`, the clutter, the rounds, the loop's state and the generator's
 /// position, not Adam's moments (tch cannot read them out; [`Adapted::resumed_after`] says the

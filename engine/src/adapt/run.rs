@@ -114,10 +114,9 @@ impl<'a> Run<'a> {
         }
         // A resumed run's snapshot already has the target's BatchNorm statistics.
         let source_fired = if config.target_batchnorm && !resumed {
-            let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), false, 1, progress)?;
-            let solved = self.solve_batch(&features, None)?;
+            let fired = mean(&self.source_fired(progress)?);
             self.target_batchnorm()?;
-            Some(mean(&solved.iter().map(|s| s.hypotheses[0].ratio()).collect::<Vec<_>>()))
+            Some(fired)
         } else {
             None
         };
@@ -174,6 +173,14 @@ impl<'a> Run<'a> {
             self.end_round(report, resume, &rng, &state, None, progress)?;
         }
         self.finish(state.converged, state.poses.into_iter().map(Some).collect(), state.ratios)
+    }
+
+    /// The fired ratio of each of up to [`SOURCE_CHECK_IMAGES`] of the images to the model as
+    /// it is (before any BatchNorm step); their mean is [`RoundReport::source_fired_ratio`].
+    pub(super) fn source_fired(&self, progress: &mut dyn FnMut(Event) -> ControlFlow<()>) -> Result<Vec<f64>> {
+        let features = self.features(self.n.min(SOURCE_CHECK_IMAGES), false, 1, progress)?;
+        let solved = self.solve_batch(&features, None)?;
+        Ok(solved.iter().map(|s| s.hypotheses[0].ratio()).collect())
     }
 
     /// Records a finished round, snapshots the run (with `resume`) and reports the round.

@@ -30,6 +30,7 @@ pub fn random_model(seed: i64, crop: [usize; 2], version: &str) -> Model {
         metrics: serde_json::Value::Null,
         files: Default::default(),
         experts: Vec::new(),
+        min_target_fired: None,
     };
     let vs = nn::VarStore::new(Device::Cpu);
     let backbone = Backbone::new(vs.root(), manifest.backbone, 128);

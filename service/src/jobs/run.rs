@@ -74,16 +74,17 @@ impl Jobs {
         let started = Instant::now();
         // Set when the images do not look like the category (see GateConfig::min_target_fired).
         let mut mismatch = None;
+        let min_fired = self.config.gate.min_target_fired_for(&source.manifest);
         let mut on_event = |event: Event| {
             if cancel.load(Ordering::Acquire) {
                 return ControlFlow::Break(());
             }
             let Event::Round(r) = event else { return ControlFlow::Continue(()) };
             if r.round == 1 {
-                let (seen, min) = (100.0 * gate::target_fired(r), 100.0 * self.config.gate.min_target_fired);
+                let (seen, min) = (100.0 * gate::target_fired(r), 100.0 * min_fired);
                 tracing::info!(job = %id, "target check: {seen:.2}% of visible vertices fire to {} (at least {min:.2}% needed)", spec.source_version);
             }
-            if let Some(seen) = self.config.gate.target_mismatch(r) {
+            if let Some(seen) = self.config.gate.target_mismatch(r, &source.manifest) {
                 mismatch = Some(seen);
                 return ControlFlow::Break(());
             }
@@ -99,7 +100,7 @@ impl Jobs {
                     spec.category,
                     spec.source_version,
                     100.0 * fired,
-                    100.0 * self.config.gate.min_target_fired
+                    100.0 * min_fired
                 );
                 e.fired_ratio = fired;
             })?;
