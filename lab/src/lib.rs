@@ -7,6 +7,7 @@ pub mod augment;
 pub mod corruptions;
 pub mod datasets;
 pub mod loader;
+pub mod not_objects;
 pub mod npz;
 pub mod preview;
 pub mod render;

@@ -9,6 +9,7 @@ mod plot;
 mod report_cmd;
 mod route_cmd;
 mod synth_cmd;
+mod target_check_cmd;
 mod train_cmd;
 
 use clap::{Parser, Subcommand};
@@ -48,6 +49,9 @@ enum Command {
     /// Route each test image to the domain whose adapt images it resembles, by image statistics
     /// alone (per-domain experts' probe) → a confusion table.
     Route(route_cmd::Args),
+    /// What the service's target check reads for a model: the share of vertices that fire on
+    /// images of no object and on each domain's first adapt images.
+    TargetCheck(target_check_cmd::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -62,5 +66,6 @@ fn main() -> anyhow::Result<()> {
         Command::Report(args) => report_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
         Command::Route(args) => route_cmd::run(&args),
+        Command::TargetCheck(args) => target_check_cmd::run(&args),
     }
 }
