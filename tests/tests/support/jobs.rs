@@ -182,7 +182,9 @@ pub fn copy_dir(from: &Path, to: &Path) {
     }
 }
 
-/// Images of no car at all: smooth random colour fields and stripes, 160×64.
+/// Images of no car at all: smooth random colour fields and stripes, 160×64: the fields of
+/// `udapose_lab::not_objects::colour_field`, which `udapose-lab target-check` measures each
+/// model's threshold on (drawn here again: this crate links no libtorch).
 pub fn not_cars(dir: &Path, n: usize) {
     fs::create_dir_all(dir).unwrap();
     let mut state = 0x9e37_79b9_7f4a_7c15_u64;
