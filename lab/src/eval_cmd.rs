@@ -177,7 +177,7 @@ fn domain_entry(name: &str, d: DomainErrors) -> Result<(serde_json::Value, Strin
 /// Every domain under `root` with a `split` directory, one or two levels deep (`fog`,
 /// `corrupt/fog`; BENCHMARK.md §4's layout): SynCar-OOD's own in their usual order, then any
 /// others by name.
-fn domains_present(root: &Path, split: &str) -> Vec<String> {
+pub(crate) fn domains_present(root: &Path, split: &str) -> Vec<String> {
     let mut found = Vec::new();
     let mut visit = |rel: String| {
         if root.join(&rel).join(split).is_dir() {

@@ -18,6 +18,8 @@ use udapose_lab::datasets::syncar::SyncarSplit;
 use udapose_lab::loader::{load_annotated, planar};
 use udapose_lab::not_objects::colour_field;
 
+use crate::eval_cmd::domains_present;
+
 #[derive(clap::Args)]
 pub struct Args {
     /// The model directory.
@@ -29,9 +31,6 @@ pub struct Args {
     /// The domains to read (default: every domain of --data but source).
     #[arg(long, value_delimiter = ',')]
     domains: Vec<String>,
-    /// Images per set: the check reads this many of a job's images.
-    #[arg(long, default_value_t = SOURCE_CHECK_IMAGES)]
-    images: usize,
     /// Write the readings here as JSON (also printed).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -67,18 +66,19 @@ pub fn run(args: &Args) -> Result<()> {
     let model = checkpoint::load(&args.model, device).with_context(|| format!("loading {}", args.model.display()))?;
     let [h, w] = model.manifest.crop;
     let config = AdaptConfig::default();
-    let fields: Vec<f32> = (0..args.images).flat_map(|i| planar(&colour_field(i, w as u32, h as u32))).collect();
-    let no_object = fired(&model, &fields, args.images, &config)?;
+    let fields: Vec<f32> =
+        (0..SOURCE_CHECK_IMAGES).flat_map(|i| planar(&colour_field(i, w as u32, h as u32))).collect();
+    let no_object = fired(&model, &fields, SOURCE_CHECK_IMAGES, &config)?;
     let mut domains = Vec::new();
     if let Some(data) = &args.data {
         for domain in domain_names(data, &args.domains)? {
-            let (pixels, n) = adapt_images(data, &domain, args.images)?;
+            let (pixels, n) = adapt_images(data, &domain, SOURCE_CHECK_IMAGES)?;
             domains.push((domain, fired(&model, &pixels, n, &config)?));
         }
     }
     println!(
         "{} ({}), {} images per set: mean share of visible vertices that fire ± SE",
-        model.manifest.version, model.manifest.category, args.images
+        model.manifest.version, model.manifest.category, SOURCE_CHECK_IMAGES
     );
     println!("{:.4} ± {:.4}\tno object (colour fields)", no_object.mean, no_object.se);
     for (set, r) in &domains {
@@ -99,7 +99,7 @@ pub fn run(args: &Args) -> Result<()> {
             "commit": crate::synth_cmd::git_commit(),
             "category": model.manifest.category,
             "version": model.manifest.version,
-            "images": args.images,
+            "images": SOURCE_CHECK_IMAGES,
             "no_object": no_object,
             "domains": domains.iter().map(|(d, r)| (d.clone(), json!(r))).collect::<serde_json::Map<_, _>>(),
             "threshold": threshold,
@@ -140,31 +140,15 @@ fn fired(model: &Model, pixels: &[f32], n: usize, config: &AdaptConfig) -> Resul
     Ok(Reading::of(&adapt::source_fired(model, &images, config, &mut |_| ControlFlow::Continue(()))?))
 }
 
-/// The domains asked for, or every folder of `data` with an adapt split but source.
+/// The domains asked for, or every domain of `data` with an adapt split but source.
 fn domain_names(data: &Path, asked: &[String]) -> Result<Vec<String>> {
     if !asked.is_empty() {
         return Ok(asked.to_vec());
     }
-    let mut found = Vec::new();
-    let mut walk = vec![(data.to_path_buf(), String::new())];
-    while let Some((dir, name)) = walk.pop() {
-        if dir.join("adapt").is_dir() {
-            if name != "source" {
-                found.push(name);
-            }
-            continue;
-        }
-        for entry in std::fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))?.flatten() {
-            if entry.path().is_dir() {
-                let child = entry.file_name().to_string_lossy().into_owned();
-                walk.push((entry.path(), if name.is_empty() { child } else { format!("{name}/{child}") }));
-            }
-        }
-    }
+    let found: Vec<String> = domains_present(data, "adapt").into_iter().filter(|d| d != "source").collect();
     if found.is_empty() {
         bail!("{} holds no domain with an adapt split", data.display());
     }
-    found.sort();
     Ok(found)
 }
 
