@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use crate::adapt::RoundReport;
+use crate::adapt::Event;
 use crate::camera::{Pose, rotation};
 use crate::checkpoint::{Manifest, Model};
 use crate::error::{EngineError, Result};
@@ -78,9 +78,8 @@ pub struct GateConfig {
     /// Fewest held-out images to decide on: 4.
     pub min_images: usize,
     /// Before any of the above, the target images must look like the category to the active
-    /// model: at 3DUDA's first round, at least this share of visible vertices must fire on
-    /// average to the unchanged model (`RoundReport::source_fired_ratio` of round 1, before the
-    /// BatchNorm step; else `fired_ratio_before`). Judged after the BatchNorm step, a job on
+    /// model: before 3DUDA's first round, at least this share of visible vertices must fire on
+    /// average to the unchanged model ([`target_fired`]; a job that fails it stops there). Judged after the BatchNorm step, a job on
     /// colour fields fired at 0.12 after 5 rounds and passed the gate. Unset (the default): the
     /// model's own threshold (`Manifest::min_target_fired`, measured by `udapose-lab
     /// target-check`), else [`DEFAULT_MIN_TARGET_FIRED`]; set, it holds for every model.
@@ -154,22 +153,19 @@ impl GateConfig {
     pub fn min_target_fired_for(&self, model: &Manifest) -> f64 {
         self.min_target_fired.or(model.min_target_fired).unwrap_or(DEFAULT_MIN_TARGET_FIRED)
     }
-
-    /// The target check (see [`GateConfig::min_target_fired`]): on round 1's report of a job
-    /// starting from `model`, the share of visible vertices that fired to it when it is below
-    /// the model's minimum (the images do not look like the category), else `None`. Judged by
-    /// the unchanged model's eyes: after AdaBN almost anything fires. Later rounds are never
-    /// judged.
-    pub fn target_mismatch(&self, round: &RoundReport, model: &Manifest) -> Option<f64> {
-        let seen = target_fired(round);
-        (round.round == 1 && seen < self.min_target_fired_for(model)).then_some(seen)
-    }
 }
 
-/// What the target check reads off a round's report: the share of visible vertices that fire
-/// to the unchanged model (before the BatchNorm step when the report has it).
-pub fn target_fired(round: &RoundReport) -> f64 {
-    round.source_fired_ratio.unwrap_or(round.fired_ratio_before)
+/// What the target check (see [`GateConfig::min_target_fired`]) reads off an adaptation event:
+/// the share of visible vertices that fire to the unchanged model. That is the
+/// [`Event::TargetCheck`] before round 1 or, in a run without a BatchNorm step (which has no
+/// separate check), round 1's `fired_ratio_before`; `None` for every other event, so a run is
+/// judged once. Judged by the unchanged model's eyes: after AdaBN almost anything fires.
+pub fn target_fired(event: &Event) -> Option<f64> {
+    match event {
+        Event::TargetCheck { fired } => Some(*fired),
+        Event::Round(r) if r.round == 1 && r.source_fired_ratio.is_none() => Some(r.fired_ratio_before),
+        _ => None,
+    }
 }
 
 /// One held-out image as one model sees it.

@@ -278,9 +278,42 @@ fn the_source_check_reads_what_round_one_reports() {
     let each = adapt::source_fired(&source, &images, &one, &mut go).unwrap();
     assert_eq!(each.len(), 6);
     let alone = each.iter().sum::<f64>() / 6.0;
-    let round = adapt::adapt(&source, &images, &one, &mut go).unwrap().rounds[0].clone();
+    let mut checks = Vec::new();
+    let mut record = |e: Event| {
+        if let Event::TargetCheck { fired } = e {
+            checks.push(fired);
+        }
+        ControlFlow::Continue(())
+    };
+    let round = adapt::adapt(&source, &images, &one, &mut record).unwrap().rounds[0].clone();
     assert_eq!(Some(alone), round.source_fired_ratio);
+    assert_eq!(checks, [alone], "one TargetCheck event, the same reading");
     assert!(alone > 0.0 && alone < 1.0, "τ = 0 fires some vertices of a random model, not all: {alone}");
+}
+
+/// A caller that refuses the images at the target check stops the run before any round.
+#[test]
+fn breaking_at_the_target_check_runs_no_round() {
+    let source = random_model("source-check");
+    let mut seen = Vec::new();
+    let mut refuse = |e: Event| match e {
+        Event::TargetCheck { .. } => {
+            seen.push("check".to_string());
+            ControlFlow::Break(())
+        }
+        Event::Step { phase, .. } => {
+            seen.push(format!("{phase:?}"));
+            ControlFlow::Continue(())
+        }
+        _ => {
+            seen.push("other".to_string());
+            ControlFlow::Continue(())
+        }
+    };
+    let run = adapt::adapt(&source, &images(6), &config(0.0), &mut refuse);
+    assert!(matches!(run, Err(EngineError::Cancelled)), "refused at the check");
+    assert_eq!(seen.last().map(String::as_str), Some("check"), "nothing after the check: {seen:?}");
+    assert!(seen.iter().all(|s| s == "Features" || s == "check"), "only the check's own features ran: {seen:?}");
 }
 
 #[test]
@@ -358,6 +391,7 @@ fn an_interrupted_adaptation_resumes_where_it_stopped() {
             Event::Resumed { rounds } => events.push(format!("resumed {rounds}")),
             Event::Round(r) => events.push(format!("round {}", r.round)),
             Event::Step { round, .. } => assert_eq!(round, 3, "a restored round ran again"),
+            Event::TargetCheck { .. } => events.push("check".into()),
         }
         ControlFlow::Continue(())
     })

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 use sha2::{Digest, Sha256};
 use tch::{Device, Kind, Tensor};
-use udapose_engine::adapt::RoundReport;
+use udapose_engine::adapt::{Event, Phase, RoundReport};
 use udapose_engine::checkpoint::{self, Model};
 use udapose_engine::error::EngineError;
 use udapose_engine::gate::{
@@ -363,7 +363,7 @@ fn config_defaults_and_serde() {
 }
 
 /// The target check's threshold: the operator's for every model, else the model's own
-/// (measured by `udapose-lab target-check`), else the default; round 1 alone is judged.
+/// (measured by `udapose-lab target-check`), else the default.
 #[test]
 fn the_target_threshold_is_the_operators_then_the_models_then_the_default() {
     let mut model = support::random_model(1, [64, 160], "target").manifest;
@@ -373,11 +373,25 @@ fn the_target_threshold_is_the_operators_then_the_models_then_the_default() {
     assert_eq!(config.min_target_fired_for(&model), 0.1);
     let operator = GateConfig { min_target_fired: Some(0.05), ..config.clone() };
     assert_eq!(operator.min_target_fired_for(&model), 0.05);
-    let round = |round, fired| RoundReport { round, source_fired_ratio: Some(fired), ..Default::default() };
-    assert_eq!(config.target_mismatch(&round(1, 0.08), &model), Some(0.08), "below the model's 0.1");
-    assert_eq!(operator.target_mismatch(&round(1, 0.08), &model), None, "above the operator's 0.05");
-    assert_eq!(config.target_mismatch(&round(2, 0.0), &model), None, "later rounds are not judged");
     assert!(GateConfig { min_target_fired: Some(1.5), ..config }.validate().is_err());
+}
+
+/// The target check judges a run once: at its TargetCheck event or, without a BatchNorm step
+/// (no separate check), at round 1.
+#[test]
+fn the_target_check_reads_one_event_per_run() {
+    assert_eq!(gate::target_fired(&Event::TargetCheck { fired: 0.08 }), Some(0.08));
+    let round = |round, source_fired_ratio| RoundReport {
+        round,
+        source_fired_ratio,
+        fired_ratio_before: 0.3,
+        ..Default::default()
+    };
+    assert_eq!(gate::target_fired(&Event::Round(&round(1, None))), Some(0.3), "no BatchNorm step");
+    assert_eq!(gate::target_fired(&Event::Round(&round(1, Some(0.08)))), None, "checked before round 1");
+    assert_eq!(gate::target_fired(&Event::Round(&round(2, None))), None, "later rounds are not judged");
+    let step = Event::Step { round: 1, phase: Phase::Features, done: 1, total: 2 };
+    assert_eq!(gate::target_fired(&step), None);
 }
 
 // ---------------------------------------------------------------------------------------------

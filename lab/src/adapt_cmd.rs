@@ -437,6 +437,9 @@ fn reporter(max_rounds: usize, work: &Path) -> impl FnMut(Event) -> ControlFlow<
                 }
                 eprintln!("round {}: {}", r.round, serde_json::to_string(r).unwrap_or_default());
             }
+            Event::TargetCheck { fired } => {
+                eprintln!("target check: {:.2}% of visible vertices fire to the unchanged model", 100.0 * fired)
+            }
             Event::Resumed { rounds } => {
                 eprintln!("resuming after round {rounds} from {work} (Adam's moments restart: tch cannot save them)")
             }

@@ -275,6 +275,14 @@ pub enum Event<'a> {
         done: usize,
         total: usize,
     },
+    /// The target check's reading, before round 1 of a run with target BatchNorm statistics:
+    /// the mean fired ratio of up to [`SOURCE_CHECK_IMAGES`] of the images to the unchanged
+    /// model (round 1's [`RoundReport::source_fired_ratio`]). A caller that breaks here stops
+    /// the run before any round, so images that do not look like the category cost one pass
+    /// over 64 images (see [`crate::gate::target_fired`]).
+    TargetCheck {
+        fired: f64,
+    },
     Round(&'a RoundReport),
     /// The run goes on from a snapshot taken after this many rounds ([`adapt_resumable`]).
     Resumed {

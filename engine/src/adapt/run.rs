@@ -115,6 +115,9 @@ impl<'a> Run<'a> {
         // A resumed run's snapshot already has the target's BatchNorm statistics.
         let source_fired = if config.target_batchnorm && !resumed {
             let fired = mean(&self.source_fired(progress)?);
+            if progress(Event::TargetCheck { fired }).is_break() {
+                return Err(EngineError::Cancelled);
+            }
             self.target_batchnorm()?;
             Some(fired)
         } else {

@@ -79,15 +79,14 @@ impl Jobs {
             if cancel.load(Ordering::Acquire) {
                 return ControlFlow::Break(());
             }
+            if let Some(seen) = gate::target_fired(&event) {
+                tracing::info!(job = %id, "target check: {:.2}% of visible vertices fire to {} (at least {:.2}% needed)", 100.0 * seen, spec.source_version, 100.0 * min_fired);
+                if seen < min_fired {
+                    mismatch = Some(seen);
+                    return ControlFlow::Break(());
+                }
+            }
             let Event::Round(r) = event else { return ControlFlow::Continue(()) };
-            if r.round == 1 {
-                let (seen, min) = (100.0 * gate::target_fired(r), 100.0 * min_fired);
-                tracing::info!(job = %id, "target check: {seen:.2}% of visible vertices fire to {} (at least {min:.2}% needed)", spec.source_version);
-            }
-            if let Some(seen) = self.config.gate.target_mismatch(r, &source.manifest) {
-                mismatch = Some(seen);
-                return ControlFlow::Break(());
-            }
             self.report_round(id, r, started, config.max_rounds)
         };
         let adapted = adapt::adapt(source, &train, config, &mut on_event);
