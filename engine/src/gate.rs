@@ -79,10 +79,11 @@ pub struct GateConfig {
     pub min_images: usize,
     /// Before any of the above, the target images must look like the category to the active
     /// model: before 3DUDA's first round, at least this share of visible vertices must fire on
-    /// average to the unchanged model ([`target_fired`]; a job that fails it stops there). Judged after the BatchNorm step, a job on
-    /// colour fields fired at 0.12 after 5 rounds and passed the gate. Unset (the default): the
-    /// model's own threshold (`Manifest::min_target_fired`, measured by `udapose-lab
-    /// target-check`), else [`DEFAULT_MIN_TARGET_FIRED`]; set, it holds for every model.
+    /// average to the unchanged model ([`target_fired`]; a job that fails it stops there).
+    /// Judged after the BatchNorm step, a job on colour fields fired at 0.12 after 5 rounds and
+    /// passed the gate. Unset (the default): the model's own threshold
+    /// (`Manifest::min_target_fired`, measured by `udapose-lab target-check`), else
+    /// [`DEFAULT_MIN_TARGET_FIRED`]; set, it holds for every model.
     /// What images of no object and each benchmark domain read, per shipped model, is in
     /// reports/target-check.md: the car model reads 0.000 on colour fields and 0.043
     /// (extreme-l2) to 0.72 on its domains, the aeroplane model already 0.126 on colour fields,
