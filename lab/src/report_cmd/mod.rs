@@ -15,6 +15,7 @@ use udapose_lab::datasets::syncar::SplitPaths;
 
 use crate::plot;
 
+mod acceptance;
 mod resumed;
 mod seeds;
 mod stats;
@@ -322,8 +323,12 @@ impl Report<'_> {
     /// The Markdown report's title, explanation and table header.
     fn table_header(&self) -> String {
         let min_acc = 1.0 - MIN_GAP;
+        let (title, flag) = match self.args.category {
+            Category::Car => (String::new(), String::new()),
+            c => (format!(" ({})", c.name()), format!(" --category {}", c.name())),
+        };
         format!(
-            "# SynCar-OOD: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}` (stages cached in `{}`), \
+            "# SynCar-OOD{title}: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}{flag}` (stages cached in `{}`), \
              commit `{}`, {}. Source model `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples \
              of the test images); gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, \
              n/a where oracle − source < {MIN_GAP}. With 300 test images an accuracy near 0.8 is known to about \
@@ -413,7 +418,7 @@ impl Report<'_> {
         }
         let resumed = resumed::stages(&self.work);
         md.push_str(&resumed::markdown(&resumed));
-        md.push_str(&self.acceptance(&out));
+        md.push_str(&acceptance::markdown(self.args.category, &out));
         md.push_str(&seeds::table(&out));
         if let (Some(s), Some(a)) =
             (self.evaluation(Variant::Source, "combined"), self.evaluation(Variant::Adapted, "combined"))
@@ -435,40 +440,6 @@ impl Report<'_> {
         udapose_lab::atomic::write_atomic(&self.out.with_extension("md"), md.as_bytes())?;
         eprintln!("wrote {} and its .md", self.out.display());
         Ok(())
-    }
-
-    /// The adaptation issue's acceptance checks: EM gains with their intervals, gaps closed
-    /// against the strong oracle, the cost of adapting in-domain.
-    fn acceptance(&self, domains: &serde_json::Map<String, Value>) -> String {
-        let mut md = String::from("\n## Acceptance\n\n");
-        let entry = |d: &str| domains.get(d).cloned().unwrap_or(Value::Null);
-        let em_above_zero = |d: &str| entry(d)["em_gain_ci"][0].as_f64().map(|lo| lo > 0.0);
-        let corruptions: Vec<&str> = ABLATION.iter().copied().filter(|d| d.starts_with("corrupt/")).collect();
-        for d in ["combined", "occ-l1"] {
-            md.push_str(&format!("- EM gain on {d}: {} (target: interval above 0)\n", em_text(&entry(d))));
-        }
-        let passed = corruptions.iter().filter(|d| em_above_zero(d) == Some(true)).count();
-        md.push_str(&format!("- EM gain above 0 on {passed} of the {} corruptions (target ≥ 3):", corruptions.len()));
-        for d in &corruptions {
-            md.push_str(&format!(" {d} {};", em_text(&entry(d))));
-        }
-        md.push('\n');
-        for d in strong_domains().into_iter().filter(|d| *d != "occ-l1") {
-            let target = if ["shape", "pose"].contains(&d) { 0.5 } else { 0.7 };
-            md.push_str(&format!(
-                "- {d}: gap closed against the strong oracle {} (target ≥ {target})\n",
-                gap_text(&entry(d))
-            ));
-        }
-        md.push_str(&format!(
-            "- occ-l1: gap closed against the strong oracle {} (target ≥ 0.5)\n",
-            gap_text(&entry("occ-l1"))
-        ));
-        let acc = |v: &str| entry("source")[v]["acc_pi_6"].as_f64();
-        if let (Some(s), Some(a)) = (acc("source"), acc("adapted")) {
-            md.push_str(&format!("- source: adapting on source costs {:+.3} Acc@π/6 (target ≥ −0.01)\n", a - s));
-        }
-        md
     }
 
     /// The paper's Fig. 1 and 7 for `combined`: fired-vertex ratio by azimuth and pose errors.
@@ -499,34 +470,6 @@ impl Report<'_> {
             mean(&fs),
             mean(&fa)
         ))
-    }
-}
-
-/// `+0.012 [−0.010, +0.030]`, or "not run yet".
-fn em_text(e: &Value) -> String {
-    match (e["em_gain"].as_f64(), e["em_gain_ci"][0].as_f64(), e["em_gain_ci"][1].as_f64()) {
-        (Some(x), Some(lo), Some(hi)) => format!("{x:+.3} [{lo:+.3}, {hi:+.3}]"),
-        _ => "not run yet".into(),
-    }
-}
-
-/// `0.72 [0.55, 0.90]`, "n/a" (oracle − source below [`MIN_GAP`]) or "not run yet".
-fn gap_text(e: &Value) -> String {
-    match (
-        e["gap_closed_strong"].as_f64(),
-        e["gap_closed_strong_ci"][0].as_f64(),
-        e["gap_closed_strong_ci"][1].as_f64(),
-    ) {
-        (Some(x), Some(lo), Some(hi)) => format!("{x:.2} [{lo:.2}, {hi:.2}]"),
-        (Some(x), ..) => format!("{x:.2}"),
-        _ if e["strong_oracle"].is_object() => {
-            let d = f(&e["strong_oracle"]["acc_pi_6"]) - f(&e["source"]["acc_pi_6"]);
-            format!("n/a (strong oracle − source {d:+.3} < {MIN_GAP})")
-        }
-        _ if f(&e["source"]["acc_pi_6"]) >= 1.0 - MIN_GAP => {
-            format!("n/a (source {:.3}: no gap of {MIN_GAP} to close; not run)", f(&e["source"]["acc_pi_6"]))
-        }
-        _ => "not run yet".into(),
     }
 }
 
