@@ -6,7 +6,7 @@
 # $UDAPOSE_CACHE/run/report-standard-C and skipped when done, so a rerun (another session) goes
 # on where this one stopped. The report goes to reports/syncar-ood-C.{json,md} and its PNGs.
 # The global-filter ablation stays car's alone (`--ablation none`): it answers a question about
-# the method, not about the category; so does adaptation over seeds (`--seeds 1`). About 2-3
+# the method, not about the category; so does adaptation over seeds (`--seeds 1`). About 2-6
 # hours per category on the 2-core CPU, most of it the strong oracle (10-40 passes over 300
 # images). Run one report at a time: two libtorch jobs on 2 cores slow each other several-fold
 # (a strong-oracle pass went from ~25 s to ~230 s beside two others).
