@@ -22,9 +22,15 @@ if [ ${#categories[@]} -eq 0 ]; then
     [ "$c" = car ] || categories+=("$c")
   done
 fi
+# The report runs its binary once per stage, for hours: it runs a copy, so that a rebuild
+# meanwhile (`make build`) neither breaks it nor mixes two builds in one report.
+mkdir -p "$CACHE/run"
+pinned=$(mktemp "$CACHE/run/udapose-lab.XXXXXX")
+trap 'rm -f "$pinned"' EXIT
+install -m 755 "$LAB" "$pinned"
 for c in "${categories[@]}"; do
   [ -f "models/$c/manifest.json" ] || { echo "no models/$c: ship it first (lab/scripts/ship_category.py $c)" >&2; exit 1; }
   echo "== $c"
-  "$LAB" report --profile standard --category "$c" --data "$CACHE/data/syncar-ood-standard-$c" \
+  "$pinned" report --profile standard --category "$c" --data "$CACHE/data/syncar-ood-standard-$c" \
     --work "$CACHE/run/report-standard-$c" --domains "$DOMAINS" --ablation none --seeds 1
 done
