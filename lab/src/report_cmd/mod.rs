@@ -16,6 +16,7 @@ use udapose_lab::datasets::syncar::SplitPaths;
 use crate::plot;
 
 mod acceptance;
+mod commits;
 mod resumed;
 mod seeds;
 mod stats;
@@ -321,7 +322,7 @@ impl Report<'_> {
     }
 
     /// The Markdown report's title, explanation and table header.
-    fn table_header(&self) -> String {
+    fn table_header(&self, stage_commits: &str) -> String {
         let min_acc = 1.0 - MIN_GAP;
         let (title, flag) = match self.args.category {
             Category::Car => (String::new(), String::new()),
@@ -329,7 +330,7 @@ impl Report<'_> {
         };
         format!(
             "# SynCar-OOD{title}: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}{flag}` (stages cached in `{}`), \
-             commit `{}`, {}. Source model `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples \
+             written at commit `{}` from stages run at {stage_commits}, {}. Source model `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples \
              of the test images); gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, \
              n/a where oracle − source < {MIN_GAP}. With 300 test images an accuracy near 0.8 is known to about \
              ±0.045: differences inside the intervals are not improvements.\n\n\
@@ -410,7 +411,8 @@ impl Report<'_> {
 
     fn write(&self, domains: &[String]) -> Result<()> {
         let mut out = serde_json::Map::new();
-        let mut md = self.table_header();
+        let stage_commits = commits::stages(&self.work);
+        let mut md = self.table_header(&commits::markdown(&stage_commits));
         for domain in domains {
             let (entry, row) = self.domain(domain);
             md.push_str(&row);
@@ -435,6 +437,7 @@ impl Report<'_> {
             "domains": out,
             "stage_seconds": self.timings,
             "resumed_stages": resumed,
+            "stage_commits": stage_commits,
         });
         udapose_lab::atomic::write_atomic(&self.out, (serde_json::to_string_pretty(&report)? + "\n").as_bytes())?;
         udapose_lab::atomic::write_atomic(&self.out.with_extension("md"), md.as_bytes())?;
