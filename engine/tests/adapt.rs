@@ -7,7 +7,6 @@
 mod support;
 
 use std::ops::ControlFlow;
-use std::sync::Mutex;
 
 use tch::{Device, Kind, Tensor, nn};
 use udapose_engine::Pose;
@@ -16,18 +15,10 @@ use udapose_engine::checkpoint;
 use udapose_engine::error::EngineError;
 use udapose_engine::solver::{AdamConfig, Optimizer, SolverConfig};
 
-/// Held while seeding torch's global generator and drawing from it: the tests run side by
-/// side, and one's draws between another's seed and draw made that test's model and images
-/// differ from run to run (a flip-check test saw a case it never saw alone).
-static GLOBAL_GENERATOR: Mutex<()> = Mutex::new(());
-
 /// The shared random model, saved and loaded back (as a served model is).
 fn random_model(name: &str) -> checkpoint::Model {
     let scratch = support::Scratch::new(&format!("adapt-{name}"));
-    let model = {
-        let _seeded = GLOBAL_GENERATOR.lock().unwrap_or_else(|e| e.into_inner());
-        support::random_model(5, [64, 160], "source-test")
-    };
+    let model = support::random_model(5, [64, 160], "source-test");
     let path = scratch.path().join("model");
     checkpoint::save(&path, &model.manifest, &model.vs, &model.neural_mesh).unwrap();
     checkpoint::load(&path, Device::Cpu).unwrap()
@@ -37,10 +28,10 @@ fn images(n: i64) -> Tensor {
     seeded_images(n, 11)
 }
 
+/// `n` images of uniform noise, the same for the same `seed` (drawn on the host: see
+/// [`support::Draws`]).
 fn seeded_images(n: i64, seed: i64) -> Tensor {
-    let _seeded = GLOBAL_GENERATOR.lock().unwrap_or_else(|e| e.into_inner());
-    tch::manual_seed(seed);
-    Tensor::rand([n, 3, 64, 160], (Kind::Float, Device::Cpu))
+    support::Draws::new(seed as u64).rand(&[n, 3, 64, 160])
 }
 
 /// Small and fast: 4 images per vertex update, 3 per backbone step, a short solver.
