@@ -329,10 +329,11 @@ impl Report<'_> {
             c => (format!(" ({})", c.name()), format!(" --category {}", c.name())),
         };
         format!(
-            "# SynCar-OOD{title}: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}{flag}` (stages cached in `{}`), \
-             written at commit `{}` from stages run at {stage_commits}, {}. Source model `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples \
-             of the test images); gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, \
-             n/a where oracle − source < {MIN_GAP}. With 300 test images an accuracy near 0.8 is known to about \
+            "# SynCar-OOD{title}: source vs 3DUDA vs oracle\n\n`udapose-lab report --profile {}{flag}` \
+             (stages cached in `{}`), written at commit `{}` from stages run at {stage_commits}, {}. Source model \
+             `{}`.\n\nAcc@π/6 per model with its 95% bootstrap interval (1000 resamples of the test images); \
+             gap closed = (adapted − source)/(oracle − source) with a paired bootstrap interval, n/a where \
+             oracle − source < {MIN_GAP}. With 300 test images an accuracy near 0.8 is known to about \
              ±0.045: differences inside the intervals are not improvements.\n\n\
              3DUDA here starts by replacing the backbone's BatchNorm statistics by the target images' own \
              (AdaBN, label-free; `--no-target-bn` turns it off); *BN only* is that step alone, so what the EM's \
