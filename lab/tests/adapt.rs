@@ -78,6 +78,12 @@ fn quick_report_adapts_combined_without_collapsing() {
 
     let report = read(&out);
     assert_eq!(report["profile"], "quick");
+    // Every stage ran in this one process tree, so the report names one build for all its
+    // outputs: the models of the three fine-tuned variants, the global filter and the second
+    // seed, and their evaluations (round snapshots and the source model left out).
+    let commits = report["stage_commits"].as_object().unwrap();
+    assert_eq!(commits.keys().collect::<Vec<_>>(), [report["commit"].as_str().unwrap()], "{commits:?}");
+    assert!(commits.values().all(|n| n.as_u64().unwrap() >= 10), "{commits:?}");
     let d = &report["domains"]["combined"];
     for v in ["source", "adapted", "oracle", "strong_oracle", "global_filter"] {
         let m = &d[v];

@@ -4,30 +4,17 @@
 //! `commit`), and the report counts them.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
-/// Stage outputs in `work` per commit. Round snapshots (hidden folders) are not outputs.
-pub(super) fn stages(work: &Path) -> BTreeMap<String, usize> {
+/// Stage outputs per commit; an output that names none (`timings.json`) is not counted.
+pub(super) fn stages(outputs: &[PathBuf]) -> BTreeMap<String, usize> {
     let mut found = BTreeMap::new();
-    count(work, 3, &mut found);
-    found
-}
-
-fn count(dir: &Path, depth: usize, found: &mut BTreeMap<String, usize>) {
-    let Ok(entries) = std::fs::read_dir(dir) else { return };
-    for path in entries.filter_map(|e| Some(e.ok()?.path())) {
-        let hidden = path.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'));
-        if hidden {
-            continue;
-        }
-        if path.is_dir() && depth > 1 {
-            count(&path, depth - 1, found);
-        } else if let Some(commit) = path.extension().is_some_and(|e| e == "json").then(|| commit(&path)).flatten() {
-            *found.entry(commit).or_default() += 1;
-        }
+    for commit in outputs.iter().filter_map(|o| commit(o)) {
+        *found.entry(commit).or_default() += 1;
     }
+    found
 }
 
 fn commit(file: &Path) -> Option<String> {
@@ -53,19 +40,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn counts_models_and_evaluations_but_not_snapshots() {
+    fn counts_the_commits_outputs_name() {
         let work = std::env::temp_dir().join(format!("udapose-report-commits-{}", std::process::id()));
         let write = |rel: &str, text: &str| {
             let file = work.join(rel);
             std::fs::create_dir_all(file.parent().unwrap()).unwrap();
-            std::fs::write(file, text).unwrap();
+            std::fs::write(&file, text).unwrap();
+            file
         };
-        write("adapted/combined/manifest.json", r#"{"training": {"commit": "aaa"}}"#);
-        write("adapted/.combined.rounds/round-0001/manifest.json", r#"{"training": {"commit": "zzz"}}"#);
-        write("eval/adapted/combined.json", r#"{"commit": "aaa"}"#);
-        write("eval/source/combined.json", r#"{"commit": "bbb"}"#);
-        write("timings.json", r#"{"adapt combined": 12.0}"#);
-        let found = stages(&work);
+        let outputs = [
+            write("adapted/combined/manifest.json", r#"{"training": {"commit": "aaa"}}"#),
+            write("eval/adapted/combined.json", r#"{"commit": "aaa"}"#),
+            write("eval/source/combined.json", r#"{"commit": "bbb"}"#),
+            write("timings.json", r#"{"adapt combined": 12.0}"#),
+        ];
+        let found = stages(&outputs);
         std::fs::remove_dir_all(&work).unwrap();
         assert_eq!(found, BTreeMap::from([("aaa".into(), 2), ("bbb".into(), 1)]));
         assert_eq!(markdown(&found), "`aaa` (2 outputs), `bbb` (1)");

@@ -17,6 +17,7 @@ use crate::plot;
 
 mod acceptance;
 mod commits;
+mod outputs;
 mod resumed;
 mod seeds;
 mod stats;
@@ -412,14 +413,15 @@ impl Report<'_> {
 
     fn write(&self, domains: &[String]) -> Result<()> {
         let mut out = serde_json::Map::new();
-        let stage_commits = commits::stages(&self.work);
+        let outputs = outputs::list(&self.work);
+        let stage_commits = commits::stages(&outputs);
         let mut md = self.table_header(&commits::markdown(&stage_commits));
         for domain in domains {
             let (entry, row) = self.domain(domain);
             md.push_str(&row);
             out.insert(domain.clone(), entry);
         }
-        let resumed = resumed::stages(&self.work);
+        let resumed = resumed::stages(&self.work, &outputs);
         md.push_str(&resumed::markdown(&resumed));
         md.push_str(&acceptance::markdown(self.args.category, &out));
         md.push_str(&seeds::table(&out));

@@ -3,7 +3,7 @@
 //! run restarts Adam's moments and so is not bit-identical to an uninterrupted one.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 use udapose_engine::checkpoint::MANIFEST;
@@ -21,24 +21,15 @@ pub(super) fn seconds(model: &Path) -> Option<f64> {
     resumed_run(model)?["seconds"].as_f64()
 }
 
-/// The report's resumed model stages, `<variant>/<domain>` (the folders of `work`) → rounds
-/// restored.
-pub(super) fn stages(work: &Path) -> BTreeMap<String, u64> {
-    let dirs = |dir: &Path| -> Vec<std::path::PathBuf> {
-        std::fs::read_dir(dir)
-            .map(|r| r.filter_map(|e| Some(e.ok()?.path())).filter(|p| p.is_dir()).collect())
-            .unwrap_or_default()
+/// The report's resumed model stages among its `outputs`, `<variant>/<domain>` (relative to
+/// `work`) → rounds restored.
+pub(super) fn stages(work: &Path, outputs: &[PathBuf]) -> BTreeMap<String, u64> {
+    let models = outputs.iter().filter(|o| o.ends_with(MANIFEST)).filter_map(|o| o.parent());
+    let resumed = |model: &Path| {
+        let rounds = resumed_run(model)?["resumed_after"].as_u64()?;
+        Some((model.strip_prefix(work).ok()?.to_string_lossy().into_owned(), rounds))
     };
-    let mut found = BTreeMap::new();
-    for variant in dirs(work) {
-        for model in dirs(&variant) {
-            if let Some(rounds) = resumed_run(&model).and_then(|r| r["resumed_after"].as_u64()) {
-                let name = |p: &Path| p.file_name().unwrap_or_default().to_string_lossy().into_owned();
-                found.insert(format!("{}/{}", name(&variant), name(&model)), rounds);
-            }
-        }
-    }
-    found
+    models.filter_map(resumed).collect()
 }
 
 /// The report's note on them; empty when no stage was resumed.
@@ -61,6 +52,7 @@ mod tests {
     #[test]
     fn only_resumed_models_are_named() {
         let work = std::env::temp_dir().join(format!("udapose-resumed-{}", std::process::id()));
+        let mut outputs = Vec::new();
         for (model, run) in [
             ("strong_oracle/combined", r#"{"resumed_after": 2, "seconds": 90.5}"#),
             ("adapted/combined", r#"{"resumed_after": null, "seconds": 10.0}"#),
@@ -69,9 +61,10 @@ mod tests {
             std::fs::create_dir_all(work.join(model)).unwrap();
             let manifest = format!(r#"{{"training": {{"run": {run}}}}}"#);
             std::fs::write(work.join(model).join(MANIFEST), manifest).unwrap();
+            outputs.push(work.join(model).join(MANIFEST));
         }
-        std::fs::create_dir_all(work.join("eval/source")).unwrap();
-        let found = stages(&work);
+        outputs.push(work.join("eval/strong_oracle/combined.json"));
+        let found = stages(&work, &outputs);
         assert_eq!(found, BTreeMap::from([("strong_oracle/combined".to_string(), 2)]));
         assert_eq!(seconds(&work.join("strong_oracle/combined")), Some(90.5));
         assert_eq!(seconds(&work.join("adapted/combined")), None);
